@@ -1,0 +1,37 @@
+"""The peer's fault versus ours (the h11 split).
+
+``ProtocolError`` is a *remote* error: the other side sent something we refuse.
+It carries a stable machine-readable ``code`` and a human sentence, and becomes
+an ``error`` frame; the session goes on. Anything else raised while handling a
+message is a local bug and is logged loudly.
+"""
+
+from __future__ import annotations
+
+__all__ = ["ProtocolError", "ERROR_CODES"]
+
+#: Every code a peer can receive in an ``error`` frame.
+ERROR_CODES = {
+    "bad_msgpack": "the frame is not valid msgpack",
+    "too_large": "the frame exceeds the size limit",
+    "not_binary": "text frames are not accepted; send msgpack in binary frames",
+    "unknown_type": "the message type is not part of the protocol",
+    "invalid": "a field is missing, of the wrong type, out of range or not finite",
+    "version": "the protocol version is not supported",
+    "unknown_scene": "no scene of that name is served here",
+    "unknown_solver": "no solver of that name exists",
+    "bad_state": "the message is not allowed in the session's current state",
+    "bad_geometry": "a geometry payload does not decode",
+    "internal": "the server failed; the session may go on",
+}
+
+
+class ProtocolError(Exception):
+    """A message from the peer was refused."""
+
+    def __init__(self, code: str, message: str) -> None:
+        if code not in ERROR_CODES:
+            raise ValueError(f"unknown error code {code!r}")
+        super().__init__(f"{code}: {message}")
+        self.code = code
+        self.message = message

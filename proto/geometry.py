@@ -1,0 +1,181 @@
+"""Geometry payloads: the one encoding used both in the scene store and on the wire.
+
+A representation is stored exactly as it is sent, so the server streams blobs
+without re-encoding them. Positions are quantized to 16 bits inside the
+object's box (the same box for every level of an object, so that levels line up
+for geomorphing) and both buffers go through meshoptimizer's codecs, which
+exploit the vertex-cache order that ``encode_geometry`` establishes first.
+
+Payload (a msgpack map)::
+
+    enc  "mq16"                      encoding tag
+    nv   int                         vertex count
+    nf   int                         triangle count
+    lo   [x, y, z] float             box minimum (object space = world space here)
+    ext  [x, y, z] float             box extent (> 0 on every axis)
+    vb   bytes                       meshopt vertex buffer, nv × 4 uint16 (x, y, z, 0)
+    ib   bytes                       meshopt index buffer, 3·nf uint32
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import meshoptimizer
+import msgpack
+import numpy as np
+
+from .errors import ProtocolError
+
+__all__ = ["ENCODING", "MAX_VERTICES", "MAX_FACES", "Geometry", "encode_geometry", "decode_geometry"]
+
+ENCODING = "mq16"
+MAX_VERTICES = 1 << 22
+MAX_FACES = 1 << 23
+_QMAX = 65535.0
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Decoded triangle geometry.
+
+    positions : (nv, 3) float32, world space
+    indices   : (nf, 3) uint32, every entry < nv
+    """
+
+    positions: np.ndarray
+    indices: np.ndarray
+
+    @property
+    def vertices(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def faces(self) -> int:
+        return int(self.indices.shape[0])
+
+
+def quantize(positions: np.ndarray, lo: np.ndarray, ext: np.ndarray) -> np.ndarray:
+    """(n, 3) float → (n, 4) uint16, the fourth lane zero (meshopt wants 4-byte multiples)."""
+    q = np.zeros((positions.shape[0], 4), dtype=np.uint16)
+    scaled = (np.asarray(positions, np.float64) - lo) / ext * _QMAX
+    q[:, :3] = np.clip(np.rint(scaled), 0, _QMAX).astype(np.uint16)
+    return q
+
+
+def dequantize(q: np.ndarray, lo: np.ndarray, ext: np.ndarray) -> np.ndarray:
+    """(n, 4) uint16 → (n, 3) float32."""
+    return (lo + q[:, :3].astype(np.float64) * (ext / _QMAX)).astype(np.float32)
+
+
+def safe_box(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Box minimum and a strictly positive extent (flat objects get a tiny one)."""
+    lo = np.asarray(lo, np.float64)
+    ext = np.asarray(hi, np.float64) - lo
+    ext = np.where(ext > 1e-9, ext, 1e-6)
+    return lo, ext
+
+
+def encode_geometry(
+    positions: np.ndarray,
+    faces: np.ndarray,
+    box_lo: np.ndarray | None = None,
+    box_hi: np.ndarray | None = None,
+) -> bytes:
+    """Encode a triangle mesh into a payload.
+
+    positions : (nv, 3) float
+    faces     : (nf, 3) int, every entry < nv
+    box_lo, box_hi : (3,) float — the quantization box; defaults to the mesh's own
+        bounds. Pass the object's box so that all levels of one object share it.
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    faces = np.ascontiguousarray(np.asarray(faces), dtype=np.uint32)
+    nv, nf = positions.shape[0], faces.shape[0]
+    if positions.ndim != 2 or positions.shape[1] != 3 or nv == 0:
+        raise ValueError(f"positions must be (n, 3) with n > 0, got {positions.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or nf == 0:
+        raise ValueError(f"faces must be (m, 3) with m > 0, got {faces.shape}")
+    if not np.isfinite(positions).all():
+        raise ValueError("positions contain NaN or infinity")
+    if int(faces.max()) >= nv:
+        raise ValueError(f"face index {int(faces.max())} out of range for {nv} vertices")
+    if box_lo is None or box_hi is None:
+        box_lo, box_hi = positions.min(axis=0), positions.max(axis=0)
+    lo, ext = safe_box(box_lo, box_hi)
+
+    # Reorder for the post-transform cache, then vertices in first-use order:
+    # both make the meshopt codecs (and the GPU) work well.
+    flat = faces.reshape(-1)
+    cached = np.zeros_like(flat)
+    meshoptimizer.optimize_vertex_cache(cached, flat, flat.size, nv)
+    q = quantize(positions, lo, ext)
+    fetched = np.zeros_like(q)
+    used = meshoptimizer.optimize_vertex_fetch(fetched, cached, q, flat.size, nv, q.itemsize * 4)
+    fetched = fetched[:used]
+    vb = meshoptimizer.encode_vertex_buffer(fetched, used, 8)
+    ib = meshoptimizer.encode_index_buffer(cached, flat.size, used)
+    return msgpack.packb(
+        {
+            "enc": ENCODING,
+            "nv": int(used),
+            "nf": int(nf),
+            "lo": [float(x) for x in lo],
+            "ext": [float(x) for x in ext],
+            "vb": vb,
+            "ib": ib,
+        },
+        use_bin_type=True,
+    )
+
+
+def _field(payload: dict, name: str, kind: type | tuple[type, ...]) -> object:
+    if name not in payload:
+        raise ProtocolError("bad_geometry", f"geometry payload lacks '{name}'")
+    value = payload[name]
+    if not isinstance(value, kind) or isinstance(value, bool):
+        raise ProtocolError("bad_geometry", f"geometry field '{name}' has type {type(value).__name__}")
+    return value
+
+
+def _vec3(payload: dict, name: str) -> np.ndarray:
+    value = _field(payload, name, list)
+    if len(value) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value):
+        raise ProtocolError("bad_geometry", f"geometry field '{name}' must be three numbers")
+    arr = np.asarray(value, np.float64)
+    if not np.isfinite(arr).all():
+        raise ProtocolError("bad_geometry", f"geometry field '{name}' is not finite")
+    return arr
+
+
+def decode_geometry(blob: bytes) -> Geometry:
+    """Decode and validate a payload; any defect raises ``ProtocolError('bad_geometry', ...)``."""
+    try:
+        payload = msgpack.unpackb(blob, raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises several unrelated types
+        raise ProtocolError("bad_geometry", f"geometry payload is not msgpack: {exc}") from None
+    if not isinstance(payload, dict):
+        raise ProtocolError("bad_geometry", "geometry payload is not a map")
+    if payload.get("enc") != ENCODING:
+        raise ProtocolError("bad_geometry", f"unknown geometry encoding {payload.get('enc')!r}")
+    nv = _field(payload, "nv", int)
+    nf = _field(payload, "nf", int)
+    if not 0 < nv <= MAX_VERTICES:
+        raise ProtocolError("bad_geometry", f"vertex count {nv} outside 1..{MAX_VERTICES}")
+    if not 0 < nf <= MAX_FACES:
+        raise ProtocolError("bad_geometry", f"face count {nf} outside 1..{MAX_FACES}")
+    lo, ext = _vec3(payload, "lo"), _vec3(payload, "ext")
+    if (ext <= 0).any():
+        raise ProtocolError("bad_geometry", "geometry box extent must be positive")
+    vb = _field(payload, "vb", bytes)
+    ib = _field(payload, "ib", bytes)
+    try:
+        q = meshoptimizer.decode_vertex_buffer(nv, 8, vb)
+        idx = meshoptimizer.decode_index_buffer(3 * nf, 4, ib)
+    except Exception as exc:
+        raise ProtocolError("bad_geometry", f"geometry buffers do not decode: {exc}") from None
+    q = np.frombuffer(np.ascontiguousarray(q).tobytes(), dtype=np.uint16).reshape(nv, 4)
+    idx = np.frombuffer(np.ascontiguousarray(idx).tobytes(), dtype=np.uint32).reshape(nf, 3)
+    if int(idx.max()) >= nv:
+        raise ProtocolError("bad_geometry", f"index {int(idx.max())} out of range for {nv} vertices")
+    return Geometry(positions=dequantize(q, lo, ext), indices=idx)

@@ -1,0 +1,180 @@
+"""The wire contract: every message either side may send, validated on construction.
+
+Messages are frozen pydantic models in strict mode: a string is never taken
+for a number, NaN and infinity are refused, lists have fixed or bounded
+lengths, and unknown fields are errors. Each message is a msgpack map whose
+``type`` field names its class (see ``proto.codec``).
+
+Times are seconds. Client timestamps (``t``) are on the client's clock, which is
+the time base of a session. Positions are in scene units (metres).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+__all__ = [
+    "PROTOCOL_VERSION",
+    "Hello",
+    "Welcome",
+    "Camera",
+    "FrameReport",
+    "Delta",
+    "RepresentationAdd",
+    "Error",
+    "Pose",
+    "TourKey",
+    "ClientMessage",
+    "ServerMessage",
+    "CLIENT_TYPES",
+    "SERVER_TYPES",
+]
+
+PROTOCOL_VERSION = 1
+
+#: Coordinates beyond this are refused: they would lose all precision in float32.
+MAX_COORD = 1.0e7
+#: A delta never names more representations than this in one list.
+MAX_LIST = 1 << 20
+
+Coord = Annotated[float, Field(ge=-MAX_COORD, le=MAX_COORD)]
+Vec3 = Annotated[list[Coord], Field(min_length=3, max_length=3)]
+Name = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.\-]+$")]
+Id = Annotated[int, Field(ge=0, lt=1 << 31)]
+Count = Annotated[int, Field(ge=0, le=1 << 32)]
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+def _norm(v: list[float]) -> float:
+    return math.sqrt(sum(x * x for x in v))
+
+
+class Pose(_Message):
+    """A camera pose: eye position, view direction and up vector (need not be unit)."""
+
+    eye: Vec3
+    forward: Vec3
+    up: Vec3
+
+    @model_validator(mode="after")
+    def _directions(self) -> "Pose":
+        f, u = self.forward, self.up
+        nf, nu = _norm(f), _norm(u)
+        if nf < 1e-9:
+            raise ValueError("forward must be a non-zero vector")
+        if nu < 1e-9:
+            raise ValueError("up must be a non-zero vector")
+        cross = [f[1] * u[2] - f[2] * u[1], f[2] * u[0] - f[0] * u[2], f[0] * u[1] - f[1] * u[0]]
+        if _norm(cross) < 1e-6 * nf * nu:
+            raise ValueError("up must not be parallel to forward")
+        return self
+
+
+class TourKey(Pose):
+    """One key of a camera tour: the pose at time ``t`` seconds after the tour starts."""
+
+    t: Annotated[float, Field(ge=0.0, le=1.0e6)]
+
+
+# --------------------------------------------------------------------------- client → server
+
+
+class Hello(_Message):
+    """Opens a session on a scene."""
+
+    type: Literal["hello"] = "hello"
+    protocol: int
+    scene: Name
+    viewport: Annotated[list[Annotated[int, Field(ge=16, le=16384)]], Field(min_length=2, max_length=2)]
+    fov_y: Annotated[float, Field(gt=5.0, lt=170.0)] = 60.0
+    target_frame_time: Annotated[float, Field(ge=0.001, le=2.0)] = 0.05
+    solver: Name = "greedy"
+    client: Annotated[str, Field(max_length=128)] = ""
+
+
+class Camera(Pose):
+    """Where the client's camera is at client time ``t``."""
+
+    type: Literal["camera"] = "camera"
+    t: Annotated[float, Field(ge=0.0, le=1.0e9)]
+
+
+class FrameReport(_Message):
+    """What one frame drew and how long it took (fenced wall time, seconds)."""
+
+    type: Literal["frame_report"] = "frame_report"
+    frame: Count
+    t: Annotated[float, Field(ge=0.0, le=1.0e9)]
+    time: Annotated[float, Field(gt=0.0, le=60.0)]
+    triangles: Count
+    vertices: Count
+    draws: Count
+    selection: Annotated[int, Field(ge=-1, lt=1 << 31)] = -1
+
+
+# --------------------------------------------------------------------------- server → client
+
+
+class Welcome(_Message):
+    """Accepts a session: where the scene is, where to start, how often selections come."""
+
+    type: Literal["welcome"] = "welcome"
+    session: Annotated[str, Field(min_length=1, max_length=128)]
+    protocol: int
+    scene: Name
+    bounds: Annotated[list[Vec3], Field(min_length=2, max_length=2)]
+    start: Pose
+    tau: Annotated[float, Field(gt=0.0, le=60.0)]
+    solver: Name
+    tour: Annotated[list[TourKey], Field(max_length=100_000)] = []
+
+
+class RepresentationAdd(_Message):
+    """A representation the client lacks, with its geometry payload (``proto.geometry``)."""
+
+    rep: Id
+    object: Id
+    level: Annotated[int, Field(ge=0, le=255)]
+    geometry: Annotated[bytes, Field(max_length=1 << 28)]
+
+
+class Delta(_Message):
+    """Representations to add and drop, and the selection to draw during [t0, t1)."""
+
+    type: Literal["delta"] = "delta"
+    seq: Count
+    t0: float
+    t1: float
+    add: Annotated[list[RepresentationAdd], Field(max_length=MAX_LIST)] = []
+    drop: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
+    selection: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
+    budget: Annotated[float, Field(ge=0.0)] = 0.0
+    predicted_cost: Annotated[float, Field(ge=0.0)] = 0.0
+    cost_coeff: Annotated[float, Field(ge=0.0)] = 0.0
+
+    @model_validator(mode="after")
+    def _interval(self) -> "Delta":
+        if self.t1 < self.t0:
+            raise ValueError("t1 must not precede t0")
+        return self
+
+
+class Error(_Message):
+    """A refused message: a stable ``code`` (see ``proto.errors.ERROR_CODES``) and a sentence."""
+
+    type: Literal["error"] = "error"
+    code: Annotated[str, Field(min_length=1, max_length=64)]
+    message: Annotated[str, Field(max_length=4096)]
+
+
+ClientMessage = Union[Hello, Camera, FrameReport]
+ServerMessage = Union[Welcome, Delta, Error]
+
+CLIENT_TYPES: dict[str, type[_Message]] = {"hello": Hello, "camera": Camera, "frame_report": FrameReport}
+SERVER_TYPES: dict[str, type[_Message]] = {"welcome": Welcome, "delta": Delta, "error": Error}
