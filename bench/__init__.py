@@ -1,0 +1,1 @@
+"""Evaluation, benchmarks, the demo and the command line: everything that runs the parts together."""

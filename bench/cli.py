@@ -1,0 +1,189 @@
+"""The ``walkstream`` command line.
+
+It lives in ``bench`` because it ties every part together (``bench`` may import
+everything); each command imports what it needs when it runs, so ``walkstream
+serve`` works on a machine without moderngl and ``--help`` is instant.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="walkstream: streamed walkthroughs that hold the frame rate you ask for.",
+)
+
+DEFAULT_CACHE = Path.home() / ".cache" / "walkstream"
+
+
+def _demo_store(objects: int, seed: int) -> Path:
+    from server.scene.store import SCHEMA_VERSION
+
+    return DEFAULT_CACHE / f"demo-n{objects}-s{seed}-v{SCHEMA_VERSION}.db"
+
+
+def _build_demo_with_progress(path: Path, objects: int, seed: int, quiet: bool = False) -> dict:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from server.scene.build import build_demo
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with Progress(
+        TextColumn("[bold]building demo scene"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        transient=False,
+        disable=quiet,
+        console=_stderr_console(),
+    ) as progress:
+        task = progress.add_task("build", total=objects)
+
+        def tick(done: int, total: int) -> None:
+            progress.update(task, completed=done, total=total)
+
+        return build_demo(path, objects=objects, seed=seed, progress=tick)
+
+
+def _stderr_console():
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+@app.command()
+def build(
+    source: str = typer.Argument(..., help="what to build: 'demo' (more sources come with the importers)"),
+    output: Path = typer.Option(..., "-o", "--output", help="the scene store to write (SQLite)"),
+    objects: int = typer.Option(576, help="demo: number of objects"),
+    seed: int = typer.Option(0, help="demo: random seed (same seed, same scene)"),
+) -> None:
+    """Build a scene store. The store appears only when the build completes."""
+    if source != "demo":
+        raise typer.BadParameter(f"unknown source {source!r}; this version builds 'demo'", param_hint="SOURCE")
+    if objects < 1:
+        raise typer.BadParameter("must be at least 1", param_hint="--objects")
+    summary = _build_demo_with_progress(output, objects, seed)
+    typer.echo(json.dumps({"store": str(output), **summary}, default=str))
+
+
+@app.command()
+def serve(
+    stores: list[Path] = typer.Argument(..., help="scene stores to serve, each under its recorded name"),
+    host: str = typer.Option("127.0.0.1", help="address to listen on"),
+    port: int = typer.Option(8765, help="port (0: any free port, printed once listening)"),
+    tau: float = typer.Option(0.5, help="seconds between selections (τ)"),
+    log_level: str = typer.Option("warning", help="uvicorn log level"),
+) -> None:
+    """Serve scene stores over websockets at /ws (plus /health, /scenes, /sessions)."""
+    from server.app import serve as run_server
+    from server.scene.store import StoreError
+    from server.session import SessionConfig
+
+    missing = [str(p) for p in stores if not p.exists()]
+    if missing:
+        raise typer.BadParameter(f"no such store: {', '.join(missing)}", param_hint="STORES")
+    if not 0.05 <= tau <= 10:
+        raise typer.BadParameter("τ must lie in [0.05, 10] seconds", param_hint="--tau")
+    try:
+        run_server(stores, host, port, SessionConfig(tau=tau), log_level, announce=lambda s: print(s, flush=True))
+    except StoreError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+@app.command()
+def client(
+    url: str = typer.Argument("ws://127.0.0.1:8765/ws", help="the server's websocket URL"),
+    scene: str = typer.Option("demo", help="scene name"),
+    duration: float = typer.Option(10.0, help="seconds to run"),
+    target_ms: float = typer.Option(50.0, help="target frame time in milliseconds"),
+    width: int = typer.Option(640),
+    height: int = typer.Option(360),
+    screenshot: Optional[Path] = typer.Option(None, help="write the last frame to this PNG"),
+) -> None:
+    """Run the headless client over the scene's tour and print its frame times."""
+    from client.app import run_client
+
+    run = run_client(
+        url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3, screenshot=screenshot
+    )
+    from bench.demo import summarize
+
+    typer.echo(json.dumps(summarize(run, target_ms / 1e3).as_dict()))
+
+
+@app.command()
+def demo(
+    duration: float = typer.Option(10.0, help="seconds of tour to run"),
+    target_ms: float = typer.Option(50.0, help="target frame time in milliseconds"),
+    width: int = typer.Option(640),
+    height: int = typer.Option(360),
+    store: Optional[Path] = typer.Option(None, help="scene store (default: the demo scene, built if missing)"),
+    objects: int = typer.Option(576, help="demo scene size when it has to be built"),
+    seed: int = typer.Option(0),
+    out: Path = typer.Option(Path("walkstream-out"), help="folder for the chart"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
+) -> None:
+    """Build the demo scene if needed, serve it on loopback and run the headless client over its tour."""
+    from rich.console import Console
+
+    from bench.demo import run_demo
+    from server.scene.store import SceneStore
+
+    console = Console(stderr=as_json)
+    target = target_ms / 1e3
+    if not 5 <= target_ms <= 1000:
+        raise typer.BadParameter("must lie in [5, 1000]", param_hint="--target-ms")
+    path = store or _demo_store(objects, seed)
+    if not path.exists():
+        if store is not None:
+            raise typer.BadParameter(f"no such store: {path}", param_hint="--store")
+        _build_demo_with_progress(path, objects, seed, quiet=False)
+    with SceneStore.open(path) as s:
+        scene = s.index.name
+
+    state = {"second": 0, "frames": []}
+
+    def on_frame(rec) -> None:
+        state["frames"].append(rec)
+        if rec.t >= state["second"] + 1:
+            fs = [f for f in state["frames"] if f.seq >= 0]
+            if fs:
+                ms = [f.time * 1e3 for f in fs]
+                console.print(
+                    f"t={int(rec.t):3d}s  frames {len(fs):3d}  mean {sum(ms) / len(ms):6.1f} ms  "
+                    f"max {max(ms):6.1f} ms  target {target_ms:.0f} ms  "
+                    f"triangles {int(sum(f.triangles for f in fs) / len(fs)):8d}  "
+                    f"c_vertex {fs[-1].cost_coeff * 1e9:7.1f} ns"
+                )
+            state["second"] = int(rec.t)
+            state["frames"] = []
+
+    console.print(f"[bold]walkstream demo[/bold]: scene {scene!r} from {path}, {duration:.0f} s at {target_ms:.0f} ms")
+    run, summary, chart = run_demo(
+        path, scene=scene, duration=duration, target=target, viewport=(width, height), out=out, on_frame=on_frame
+    )
+    verdict = "holds" if summary.mean_ok and summary.p95_ok else "MISSED"
+    console.print(
+        f"after {summary.warmup_s:.0f} s: {summary.frames} frames, mean {summary.mean_ms:.1f} ms, "
+        f"p95 {summary.p95_ms:.1f} ms, max {summary.max_ms:.1f} ms against {target_ms:.0f} ms — budget {verdict}; "
+        f"c_vertex {summary.cost_coeff * 1e9:.1f} ns; chart {chart}"
+    )
+    if as_json:
+        print(json.dumps({**summary.as_dict(), "chart": str(chart), "scene": scene}))
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

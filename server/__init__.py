@@ -1,0 +1,1 @@
+"""walkstream server: scene store, LOD selection, sessions and the websocket app."""

@@ -1,0 +1,116 @@
+"""View-frustum culling and projected screen size of bounding boxes, over all objects at once.
+
+Funkhouser & Séquin measure an object's Size as the pixels its bounding box
+covers on screen; culling and size come out of the same eight projected corners
+per box. Everything here is arrays in, arrays out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from proto.camera import NEAR, far_plane, normalize, projection_matrix, view_matrix
+
+__all__ = ["View", "frustum_planes", "cull_boxes", "screen_size", "widened"]
+
+# The eight corners of a box as 0/1 choices of (hi - lo) along x, y, z.
+_CORNERS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class View:
+    """A camera as the selection sees it: pose, field of view and viewport in pixels."""
+
+    eye: np.ndarray  # (3,) float64
+    forward: np.ndarray  # (3,) float64
+    up: np.ndarray  # (3,) float64
+    fov_y: float  # degrees
+    width: int
+    height: int
+    far: float
+
+    @classmethod
+    def of_pose(cls, eye, forward, up, fov_y: float, viewport: tuple[int, int], bounds: np.ndarray) -> "View":
+        eye = np.asarray(eye, np.float64)
+        return cls(
+            eye=eye,
+            forward=normalize(forward),
+            up=np.asarray(up, np.float64),
+            fov_y=float(fov_y),
+            width=int(viewport[0]),
+            height=int(viewport[1]),
+            far=far_plane(eye, bounds),
+        )
+
+    @property
+    def aspect(self) -> float:
+        return self.width / self.height
+
+    def matrix(self) -> np.ndarray:
+        """(4, 4) float64 world → clip."""
+        return projection_matrix(self.fov_y, self.aspect, NEAR, self.far) @ view_matrix(self.eye, self.forward, self.up)
+
+
+def widened(view: View, margin_deg: float) -> View:
+    """The same camera with ``margin_deg`` more vertical field of view and the viewport grown to match.
+
+    Pixels per radian stay the same, so an object's screen size is unchanged
+    inside the original view and meaningful in the margin (where an object
+    will be once the camera turns a little).
+    """
+    if margin_deg <= 0:
+        return view
+    fov = min(view.fov_y + margin_deg, 170.0)
+    grow = np.tan(np.radians(fov) / 2) / np.tan(np.radians(view.fov_y) / 2)
+    return View(
+        eye=view.eye,
+        forward=view.forward,
+        up=view.up,
+        fov_y=fov,
+        width=max(1, int(round(view.width * grow))),
+        height=max(1, int(round(view.height * grow))),
+        far=view.far,
+    )
+
+
+def frustum_planes(clip: np.ndarray) -> np.ndarray:
+    """(6, 4) inward plane equations (a, b, c, d), normalised, from a world → clip matrix (Gribb & Hartmann)."""
+    m = np.asarray(clip, np.float64)
+    planes = np.stack([m[3] + m[0], m[3] - m[0], m[3] + m[1], m[3] - m[1], m[3] + m[2], m[3] - m[2]])
+    return planes / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+
+
+def cull_boxes(lo: np.ndarray, hi: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """(n,) bool: boxes (n, 3) that are not entirely outside any plane (conservative p-vertex test)."""
+    lo = np.asarray(lo, np.float64)
+    hi = np.asarray(hi, np.float64)
+    visible = np.ones(lo.shape[0], dtype=bool)
+    for a, b, c, d in planes:
+        px = np.where(a >= 0, hi[:, 0], lo[:, 0])
+        py = np.where(b >= 0, hi[:, 1], lo[:, 1])
+        pz = np.where(c >= 0, hi[:, 2], lo[:, 2])
+        visible &= a * px + b * py + c * pz + d >= 0
+    return visible
+
+
+def screen_size(lo: np.ndarray, hi: np.ndarray, clip: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(n,) float64 pixels covered by the screen rectangle of each box, clipped to the viewport.
+
+    A box that reaches behind the eye plane covers an unbounded region; it is
+    given the whole viewport, which is right for the walls one walks past.
+    """
+    lo = np.asarray(lo, np.float64)
+    ext = np.asarray(hi, np.float64) - lo
+    m = np.asarray(clip, np.float64)
+    base = lo @ m[:, :3].T + m[:, 3]  # (n, 4) clip coordinates of the lo corner
+    axes = ext[:, :, None] * m[:, :3].T[None, :, :]  # (n, 3, 4) clip delta along each box edge
+    corners = base[:, None, :] + np.einsum("kc,ncw->nkw", _CORNERS, axes)  # (n, 8, 4)
+    w = corners[..., 3]
+    behind = (w <= 1e-6).any(axis=1)
+    safe_w = np.where(w > 1e-6, w, 1.0)
+    x = np.clip(corners[..., 0] / safe_w, -1.0, 1.0)
+    y = np.clip(corners[..., 1] / safe_w, -1.0, 1.0)
+    area = (x.max(axis=1) - x.min(axis=1)) * (y.max(axis=1) - y.min(axis=1)) * 0.25 * width * height
+    return np.where(behind, float(width * height), area)
