@@ -80,6 +80,7 @@ def serve(
     host: str = typer.Option("127.0.0.1", help="address to listen on"),
     port: int = typer.Option(8765, help="port (0: any free port, printed once listening)"),
     tau: float = typer.Option(0.5, help="seconds between selections (τ)"),
+    c_vertex: float = typer.Option(2.0e-7, help="first guess of the cost per vertex (s) before frames are measured"),
     log_level: str = typer.Option("warning", help="uvicorn log level"),
 ) -> None:
     """Serve scene stores over websockets at /ws (plus /health, /scenes, /sessions)."""
@@ -92,8 +93,10 @@ def serve(
         raise typer.BadParameter(f"no such store: {', '.join(missing)}", param_hint="STORES")
     if not 0.05 <= tau <= 10:
         raise typer.BadParameter("τ must lie in [0.05, 10] seconds", param_hint="--tau")
+    if not 1e-12 <= c_vertex <= 1e-3:
+        raise typer.BadParameter("must lie in [1e-12, 1e-3] seconds", param_hint="--c-vertex")
     try:
-        run_server(stores, host, port, SessionConfig(tau=tau), log_level, announce=lambda s: print(s, flush=True))
+        run_server(stores, host, port, SessionConfig(tau=tau, c_vertex=c_vertex), log_level, announce=lambda s: print(s, flush=True))
     except StoreError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
@@ -138,7 +141,7 @@ def demo(
     from bench.demo import run_demo
     from server.scene.store import SceneStore
 
-    console = Console(stderr=as_json)
+    console = Console(stderr=as_json, soft_wrap=True)
     target = target_ms / 1e3
     if not 5 <= target_ms <= 1000:
         raise typer.BadParameter("must lie in [5, 1000]", param_hint="--target-ms")

@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Set up everything walkstream needs on a fresh Debian machine: Mesa's EGL (headless
+# OpenGL on llvmpipe when there is no GPU), a virtual environment, and the package.
+# Idempotent: a second run only checks. Used by `make demo` and `make test`.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+need_apt=()
+ldconfig -p | grep -q 'libEGL_mesa\.so' || need_apt+=(libegl-mesa0)
+ldconfig -p | grep -q 'libEGL\.so\.1' || need_apt+=(libegl1)
+ldconfig -p | grep -q 'libGL\.so\.1' || need_apt+=(libgl1)
+ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1 || need_apt+=(libgl1-mesa-dri)
+if [ ${#need_apt[@]} -gt 0 ]; then
+  echo "bootstrap: installing ${need_apt[*]} (Mesa EGL for headless rendering)" >&2
+  SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_apt[@]}" >/dev/null
+fi
+
+PY=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  echo "bootstrap: creating .venv" >&2
+  "$PY" -m venv .venv
+fi
+stamp=.venv/.walkstream-installed
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+  echo "bootstrap: installing walkstream and its dependencies into .venv" >&2
+  .venv/bin/python -m pip install -q --upgrade pip
+  .venv/bin/python -m pip install -q -e '.[dev]'
+  touch "$stamp"
+fi

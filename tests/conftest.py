@@ -1,0 +1,19 @@
+"""Shared fixtures: small real scene stores built once per test session."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def demo_store(tmp_path_factory) -> Path:
+    """A small demo scene (same generator as ``walkstream build demo``), built once."""
+    from server.scene.build import build_demo
+
+    path = tmp_path_factory.mktemp("scenes") / "demo-small.db"
+    build_demo(path, objects=24, seed=3)
+    return path

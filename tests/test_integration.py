@@ -1,0 +1,99 @@
+"""The whole loop with real parts: uvicorn in its own process, the real headless client over EGL.
+
+One client follows the tour for a few seconds while a second one sends malformed
+frames; the first must not notice, and the server's cost model must have moved
+toward what the first client measured.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+from websockets.sync.client import connect
+
+from bench.demo import ServerProcess
+from client.app import run_client
+from proto import PROTOCOL_VERSION
+from proto.codec import decode_server, encode
+from proto.messages import Error, Hello, Welcome
+
+WRONG_GUESS = 2.0e-8  # ten times too optimistic for llvmpipe: the feedback must correct it
+
+
+@pytest.fixture(scope="module")
+def server(demo_store):
+    with ServerProcess([demo_store], extra=["--c-vertex", str(WRONG_GUESS)]) as srv:
+        yield srv
+
+
+def test_health_and_scenes(server):
+    health = httpx.get(server.http + "/health", timeout=10).json()
+    assert health["status"] == "ok" and health["scenes"] == ["demo"]
+    (scene,) = httpx.get(server.http + "/scenes", timeout=10).json()
+    assert scene["objects"] >= 24 and scene["representations"] >= 72 and scene["tour_seconds"] > 10
+
+
+def test_loop_closes_and_a_hostile_client_harms_no_one(server):
+    target = 0.012
+    warm = threading.Event()
+    frames_seen: list = []
+
+    def on_frame(rec) -> None:
+        frames_seen.append(rec)
+        if rec.seq >= 6:
+            warm.set()
+
+    result: dict = {}
+
+    def first_client() -> None:
+        result["run"] = run_client(server.url, "demo", duration=6.0, viewport=(320, 180),
+                                   target_frame_time=target, on_frame=on_frame)
+
+    worker = threading.Thread(target=first_client)
+    worker.start()
+    assert warm.wait(timeout=60), "the first client never drew a selection"
+
+    # A second client misbehaves while the first is mid-tour.
+    burst_at = frames_seen[-1].t
+    hostile = [
+        (b"\xc1\x00", "bad_msgpack"),
+        (msgpack.packb({"type": "camera", "t": 0.0, "eye": [0.0, float("inf"), 0.0], "forward": [0, 1, 0], "up": [0, 0, 1]}), "invalid"),
+        (msgpack.packb({"type": "camera", "t": 0.0, "eye": [0.0, 1.0, 0.0], "forward": [0, 1, 0], "up": [0, 0, 1]}), "bad_state"),
+        (encode(Hello(protocol=PROTOCOL_VERSION, scene="nowhere", viewport=[64, 64])), "unknown_scene"),
+        (msgpack.packb({"type": "hello", "protocol": PROTOCOL_VERSION, "scene": "demo", "viewport": [64, float("nan")]}), "invalid"),
+        (msgpack.packb({"type": "explode"}), "unknown_type"),
+        (b"\x00" * 100_000, "too_large"),
+        ("not msgpack at all", "not_binary"),
+    ]
+    with connect(server.url, max_size=None) as ws:
+        for data, code in hostile:
+            ws.send(data)
+            reply = decode_server(ws.recv(timeout=10))
+            assert isinstance(reply, Error) and reply.code == code, (code, reply)
+        # A valid hello after all that still opens a session.
+        ws.send(encode(Hello(protocol=PROTOCOL_VERSION, scene="demo", viewport=[64, 64])))
+        assert isinstance(decode_server(ws.recv(timeout=10)), Welcome)
+
+    seen = list(frames_seen)  # what the server had been told when we ask it
+    sessions = httpx.get(server.http + "/sessions", timeout=10).json()
+    worker.join(timeout=60)
+    run = result["run"]
+
+    # The first client went on undisturbed: no errors, and it kept drawing selections after the burst.
+    assert run.errors == []
+    after = [f for f in run.frames if f.t > burst_at and f.seq >= 0]
+    assert len(after) >= 10 and max(f.seq for f in after) > min(f.seq for f in after)
+
+    # Its frame reports reached the server, and c_vertex moved toward what it measured.
+    mine = max(sessions, key=lambda s: s["frames"])
+    assert mine["frames"] >= 20 and mine["cost_updates"] >= 10 and mine["errors"] == 0
+    drawn = [f for f in seen if f.vertices >= 1000]
+    measured = float(np.mean([f.time / f.vertices for f in drawn[-10:]]))  # what the running average saw last
+    assert abs(WRONG_GUESS - measured) > 0.75 * measured  # the guess really was wrong ...
+    moved = abs(mine["cost_coeff"] - measured)  # ... and the feedback went most of the way to the truth
+    assert moved < 0.5 * abs(WRONG_GUESS - measured), (mine["cost_coeff"], measured)
+    assert run.frames[-1].cost_coeff > 3 * WRONG_GUESS

@@ -1,0 +1,125 @@
+"""The sans-I/O session driven with raw frames, asserting the frames it answers with."""
+
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+
+from proto import PROTOCOL_VERSION
+from proto.codec import decode_server, encode
+from proto.messages import Camera, Delta, Error, FrameReport, Hello, Welcome
+from server.scene.store import SceneStore
+from server.session import Session, SessionConfig, SessionState
+
+
+@pytest.fixture()
+def scenes(demo_store):
+    store = SceneStore.open(demo_store)
+    yield {store.index.name: store}
+    store.close()
+
+
+def _hello(scenes, **kw) -> bytes:
+    fields = dict(protocol=PROTOCOL_VERSION, scene=next(iter(scenes)), viewport=[640, 360], target_frame_time=0.05)
+    return encode(Hello(**{**fields, **kw}))
+
+
+def _camera(scenes, t=0.0) -> bytes:
+    start = next(iter(scenes.values())).index.start
+    return encode(Camera(t=t, **start))
+
+
+def _wire(out):
+    """Everything a session emits must survive the wire."""
+    return [decode_server(encode(m)) for m in out]
+
+
+def _open(scenes, config=None) -> Session:
+    s = Session(scenes, "s1", config)
+    (welcome,) = _wire(s.receive(_hello(scenes), now=0.0))
+    assert isinstance(welcome, Welcome) and welcome.session == "s1" and len(welcome.tour) >= 2
+    return s
+
+
+def test_first_camera_is_answered_at_once_then_every_tau(scenes):
+    s = _open(scenes)
+    assert s.poll(0.0) == []  # no pose yet
+    assert s.receive(_camera(scenes), now=1.0) == []
+    assert s.next_deadline() == 1.0
+    (delta,) = _wire(s.poll(1.0))
+    assert isinstance(delta, Delta) and delta.seq == 1
+    assert delta.selection and {a.rep for a in delta.add} == set(delta.selection)
+    assert delta.predicted_cost <= delta.budget == 0.05
+    assert s.poll(1.2) == []  # not due before τ
+    (second,) = _wire(s.poll(1.5))
+    assert second.seq == 2 and second.add == []  # same pose: nothing new to send
+
+
+def test_frame_reports_drive_the_cost_model(scenes):
+    s = _open(scenes)
+    s.receive(_camera(scenes), now=0.0)
+    (first,) = s.poll(0.0)
+    for i in range(30):  # the client says: 1e-6 s per vertex
+        s.receive(encode(FrameReport(frame=i, t=0.1 * i, time=0.1, triangles=200_000, vertices=100_000, draws=5)), 0.1)
+    (second,) = s.poll(0.5)
+    assert second.cost_coeff == pytest.approx(1e-6, rel=0.01) and first.cost_coeff < 5e-7
+    index = scenes[s.scene_name].index
+    assert index.rep_vertices[second.selection].sum() * 1e-6 <= 0.05 * (1 + 1e-9)
+    assert s.stats["frames"] == 30
+
+
+def test_malformed_frames_get_error_frames_and_change_nothing(scenes):
+    s = _open(scenes)
+    s.receive(_camera(scenes), now=0.0)
+    before = dict(s.stats)
+    bad = [
+        (b"\xc1", "bad_msgpack"),
+        (msgpack.packb({"type": "camera", "t": 1.0, "eye": [0, 0, float("nan")], "forward": [1, 0, 0], "up": [0, 0, 1]}), "invalid"),
+        (msgpack.packb({"type": "warp"}), "unknown_type"),
+        (b"\x00" * 70_000, "too_large"),
+        ("text", "not_binary"),
+        (_hello(scenes), "bad_state"),
+    ]
+    for data, code in bad:
+        (err,) = _wire(s.receive(data, now=0.1))
+        assert isinstance(err, Error) and err.code == code
+    assert s.state is SessionState.ACTIVE and s.camera is not None
+    assert s.stats["errors"] == before["errors"] + len(bad) and s.stats["frames"] == before["frames"]
+    (delta,) = s.poll(0.2)
+    assert isinstance(delta, Delta)
+
+
+@pytest.mark.parametrize(
+    "fields, code",
+    [({"scene": "nowhere"}, "unknown_scene"), ({"protocol": 99}, "version"), ({"solver": "magic"}, "unknown_solver")],
+)
+def test_bad_hello_is_refused_and_may_be_retried(scenes, fields, code):
+    s = Session(scenes, "s2")
+    (err,) = s.receive(_hello(scenes, **fields), 0.0)
+    assert isinstance(err, Error) and err.code == code and s.state is SessionState.AWAIT_HELLO
+    (err,) = s.receive(_camera(scenes), 0.0)
+    assert err.code == "bad_state"
+    (welcome,) = s.receive(_hello(scenes), 0.0)
+    assert isinstance(welcome, Welcome)
+
+
+def test_cache_mirror_evicts_under_pressure_and_never_selects_what_the_client_lacks(scenes):
+    index = next(iter(scenes.values())).index
+    small = int(np.sort(index.rep_bytes)[::-1][:20].sum())  # room for about 20 representations
+    s = _open(scenes, SessionConfig(cache_bytes=small))
+    held: set[int] = set()
+    tour = index.tour
+    dropped = 0
+    for i, key in enumerate(tour * 2):
+        pose = {k: key[k] for k in ("eye", "forward", "up")}
+        s.receive(encode(Camera(t=float(i), **pose)), now=float(i))
+        (delta,) = _wire(s.poll(float(i)))
+        added = {a.rep for a in delta.add}
+        assert not added & held  # nothing the client holds is sent again
+        held |= added
+        held -= set(delta.drop)
+        dropped += len(delta.drop)
+        assert set(delta.selection) <= held  # the selection only names resident representations
+        assert held == set(np.nonzero(s._resident)[0].tolist())  # the mirror agrees with the client
+    assert dropped > 0
