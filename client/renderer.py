@@ -185,6 +185,7 @@ class Renderer:
         drawn = [m for m in meshes if m is not None]
         self.missing += len(meshes) - len(drawn)
 
+        self.ctx.finish()  # uploads still in flight belong to no frame: finish them outside the fence
         t0 = time.perf_counter()
         self.fbo.use()
         self.ctx.enable_only(moderngl.DEPTH_TEST)

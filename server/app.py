@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Mapping
 
 from fastapi import FastAPI, WebSocket, WebSocketDisconnect
-from pydantic import BaseModel
 
 from proto.codec import MAX_CLIENT_FRAME, encode
 from proto.messages import Error
@@ -110,9 +109,9 @@ def create_app(scenes: Mapping[str, SceneStore], config: SessionConfig | None = 
             finally:
                 await inbox.put(_GONE)
 
-        async def send(out: list[BaseModel]) -> None:
-            for m in out:
-                await ws.send_bytes(encode(m))
+        def poll_encoded(now: float) -> list[bytes]:
+            # Selection and the msgpack of a delta full of geometry both run off the event loop.
+            return [encode(m) for m in session.poll(now)]
 
         read_task = asyncio.create_task(reader())
         try:
@@ -127,13 +126,14 @@ def create_app(scenes: Mapping[str, SceneStore], config: SessionConfig | None = 
                     break
                 try:
                     if item is _TICK:
-                        out = await loop.run_in_executor(None, session.poll, time.monotonic())
+                        frames = await loop.run_in_executor(None, poll_encoded, time.monotonic())
                     else:
-                        out = session.receive(item, time.monotonic())
+                        frames = [encode(m) for m in session.receive(item, time.monotonic())]
                 except Exception:  # a bug of ours: log loudly, tell the client, keep the session
                     log.exception("session %s failed", session.id)
-                    out = [Error(code="internal", message="the server failed handling that message")]
-                await send(out)
+                    frames = [encode(Error(code="internal", message="the server failed handling that message"))]
+                for frame in frames:
+                    await ws.send_bytes(frame)
         except (WebSocketDisconnect, RuntimeError):
             pass
         finally:

@@ -1,0 +1,49 @@
+"""The command line as a user runs it: real processes, real output."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from server.scene.store import SceneStore
+
+
+def _walkstream(*args: str, cwd: Path | None = None, timeout: float = 240) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "bench.cli", *args], capture_output=True, text=True, timeout=timeout,
+                          cwd=cwd)
+
+
+def test_build_demo_writes_a_store_and_reports_it(tmp_path):
+    out = tmp_path / "tiny.db"
+    done = _walkstream("build", "demo", "-o", str(out), "--objects", "6", "--seed", "1")
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
+    with SceneStore.open(out) as store:
+        assert summary["representations"] == store.index.n_representations
+        assert (store.index.rep_count >= 3).all()
+
+
+def test_bad_arguments_fail_with_a_clear_message(tmp_path):
+    done = _walkstream("build", "moon", "-o", str(tmp_path / "x.db"))
+    assert done.returncode == 2 and "unknown source 'moon'" in done.stderr
+    assert not (tmp_path / "x.db").exists()
+    done = _walkstream("serve", str(tmp_path / "missing.db"))
+    assert done.returncode == 2 and "no such store" in done.stderr
+    not_a_store = tmp_path / "text.db"
+    not_a_store.write_text("hello")
+    done = _walkstream("serve", str(not_a_store), "--port", "0")
+    assert done.returncode == 2 and str(not_a_store) in done.stderr
+
+
+def test_demo_json_reports_the_loop(demo_store, tmp_path):
+    done = _walkstream("demo", "--store", str(demo_store), "--duration", "4", "--target-ms", "12",
+                       "--width", "320", "--height", "180", "--json", "--out", str(tmp_path))
+    assert done.returncode == 0, done.stderr
+    figures = json.loads(done.stdout.strip().splitlines()[-1])
+    for key in ("frames", "target_ms", "mean_ms", "p95_ms", "max_ms", "cost_coeff", "chart"):
+        assert key in figures
+    assert figures["frames"] > 10 and figures["target_ms"] == 12.0 and figures["errors"] == 0
+    assert Path(figures["chart"]).stat().st_size > 10_000  # a PNG with a plot in it
+    assert "frames" in done.stderr and "c_vertex" in done.stderr  # the per-second lines
