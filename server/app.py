@@ -104,7 +104,7 @@ def create_app(scenes: Mapping[str, SceneStore], config: SessionConfig | None = 
                         break
                     data = msg.get("bytes")
                     await inbox.put(data if data is not None else (msg.get("text") or ""))
-            except (WebSocketDisconnect, RuntimeError):
+            except (WebSocketDisconnect, RuntimeError, OSError):
                 pass
             finally:
                 await inbox.put(_GONE)
@@ -134,8 +134,8 @@ def create_app(scenes: Mapping[str, SceneStore], config: SessionConfig | None = 
                     frames = [encode(Error(code="internal", message="the server failed handling that message"))]
                 for frame in frames:
                     await ws.send_bytes(frame)
-        except (WebSocketDisconnect, RuntimeError):
-            pass
+        except (WebSocketDisconnect, RuntimeError, OSError):
+            pass  # the client went away mid-send: nothing to tell it
         finally:
             read_task.cancel()
             session.close()

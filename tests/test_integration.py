@@ -7,6 +7,7 @@ toward what the first client measured.
 
 from __future__ import annotations
 
+import socket
 import threading
 
 import httpx
@@ -97,3 +98,29 @@ def test_loop_closes_and_a_hostile_client_harms_no_one(server):
     moved = abs(mine["cost_coeff"] - measured)  # ... and the feedback went most of the way to the truth
     assert moved < 0.5 * abs(WRONG_GUESS - measured), (mine["cost_coeff"], measured)
     assert run.frames[-1].cost_coeff > 3 * WRONG_GUESS
+
+
+def _sessions(server) -> int:
+    return httpx.get(server.http + "/health", timeout=10).json()["sessions"]
+
+
+def test_abrupt_disconnects_leave_the_server_serving(server, demo_store):
+    from server.scene.store import SceneStore
+
+    with SceneStore.open(demo_store) as store:
+        start = store.index.start
+    from proto.messages import Camera
+
+    for _ in range(3):  # hang up right after asking for a selection, before the delta is sent
+        with connect(server.url, max_size=None) as ws:
+            ws.send(encode(Hello(protocol=PROTOCOL_VERSION, scene="demo", viewport=[320, 180])))
+            assert isinstance(decode_server(ws.recv(timeout=10)), Welcome)
+            ws.send(encode(Camera(t=0.0, **start)))
+            ws.socket.shutdown(socket.SHUT_RDWR)  # hang up: no closing handshake
+    # The server notices each hang-up and forgets the session: ask until it has (bounded in count).
+    for _ in range(2000):
+        if _sessions(server) == 0:
+            break
+    assert _sessions(server) == 0
+    run = run_client(server.url, "demo", duration=1.0, viewport=(160, 90), target_frame_time=0.02)
+    assert run.errors == [] and any(f.seq >= 1 for f in run.frames)

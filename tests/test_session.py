@@ -123,3 +123,40 @@ def test_cache_mirror_evicts_under_pressure_and_never_selects_what_the_client_la
         assert set(delta.selection) <= held  # the selection only names resident representations
         assert held == set(np.nonzero(s._resident)[0].tolist())  # the mirror agrees with the client
     assert dropped > 0
+
+
+# ----------------------------------------------------------------------------- hostile input, property-tested
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_finite = st.floats(-1e4, 1e4, allow_nan=False)
+_any_float = st.one_of(_finite, st.just(float("nan")), st.just(float("inf")), st.just(1e30))
+_vec = st.lists(_any_float, min_size=2, max_size=4)
+_frames = st.one_of(
+    st.binary(max_size=64),
+    st.builds(lambda t, e, f, u: msgpack.packb({"type": "camera", "t": t, "eye": e, "forward": f, "up": u}),
+              _any_float, _vec, _vec, _vec),
+    st.builds(lambda fr, t, tm, v: msgpack.packb({"type": "frame_report", "frame": fr, "t": t, "time": tm,
+                                                 "triangles": v, "vertices": v, "draws": 1}),
+              st.integers(-5, 10**10), _any_float, _any_float, st.integers(-5, 10**7)),
+    st.builds(lambda d: msgpack.packb(d), st.dictionaries(st.sampled_from(["type", "t", "scene", "x"]),
+                                                          st.one_of(st.integers(), st.text(max_size=8), st.none()))),
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(_frames, max_size=25), st.lists(st.floats(0, 0.01), min_size=25, max_size=25))
+def test_any_sequence_of_frames_keeps_the_session_sound(scenes, frames, gaps):
+    s = _open(scenes)
+    s.receive(_camera(scenes), now=0.0)
+    now = 0.0
+    for data, gap in zip(frames, gaps):
+        now += gap * 100
+        out = s.receive(data, now) + s.poll(now)
+        for m in _wire(out):  # every answer is a valid frame
+            if isinstance(m, Delta):
+                assert set(m.selection) <= set(np.nonzero(s._resident)[0].tolist())
+                assert m.predicted_cost <= m.budget * (1 + 1e-9)
+    assert s.state is SessionState.ACTIVE
+    assert np.isfinite(s.cost.c_vertex) and s.cost.c_vertex > 0
