@@ -141,7 +141,7 @@ _frames = st.one_of(
                                                  "triangles": v, "vertices": v, "draws": 1}),
               st.integers(-5, 10**10), _any_float, _any_float, st.integers(-5, 10**7)),
     st.builds(lambda d: msgpack.packb(d), st.dictionaries(st.sampled_from(["type", "t", "scene", "x"]),
-                                                          st.one_of(st.integers(), st.text(max_size=8), st.none()))),
+                                                          st.one_of(st.integers(-(2**63), 2**64 - 1), st.text(max_size=8), st.none()))),
 )
 
 
