@@ -8,7 +8,6 @@ summary after, and a chart of every frame's time against the target.
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -19,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["ServerProcess", "summarize", "write_chart", "run_demo"]
+__all__ = ["ServerProcess", "Summary", "summarize", "write_chart", "run_demo"]
 
 #: Frames in the first seconds are the loop converging; the summary starts after them.
 WARMUP_S = 2.0
@@ -139,27 +138,6 @@ def write_chart(run, target: float, path: Path, title: str = "walkstream demo", 
     return path
 
 
-def per_second(run, upto: float) -> list[dict]:
-    """Frames grouped by whole seconds of client time."""
-    rows = []
-    frames = run.frames
-    for s in range(int(np.ceil(upto))):
-        fs = [f for f in frames if s <= f.t < s + 1 and f.seq >= 0]
-        if fs:
-            ms = np.array([f.time for f in fs]) * 1e3
-            rows.append(
-                {
-                    "second": s,
-                    "frames": len(fs),
-                    "mean_ms": float(ms.mean()),
-                    "max_ms": float(ms.max()),
-                    "triangles": int(np.mean([f.triangles for f in fs])),
-                    "cost_coeff": float(fs[-1].cost_coeff),
-                }
-            )
-    return rows
-
-
 def run_demo(
     store: Path,
     *,
@@ -181,6 +159,3 @@ def run_demo(
     chart = write_chart(run, target, out / "demo-frames.png", title=f"walkstream demo — {scene}, target {target * 1e3:.0f} ms")
     return run, summary, chart
 
-
-def dumps(obj: dict) -> str:
-    return json.dumps(obj, sort_keys=True)
