@@ -1,0 +1,110 @@
+"""What importers and generators hand to the scene builder: plain meshes, height grids, tree instances.
+
+These are the in-memory form of a scene *before* LOD chains, hierarchies and
+encoding. Coordinates are float64 in the source's own frame (a CityJSON file in
+EPSG:7415 keeps its metres east/north/up); the builder recentres on an origin
+it records, so float32 on the GPU keeps centimetres. The up axis is +z
+everywhere in walkstream (CityJSON, CityGML and DEMs are all z-up; glTF's +y up
+is rotated to +z by its importer).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Mesh", "SourceObject", "HeightGrid", "TreeModel", "TreeInstances", "SourceScene", "SourceError"]
+
+
+class SourceError(ValueError):
+    """Input that cannot be imported; the message names the file and the place in it."""
+
+
+@dataclass
+class Mesh:
+    """A triangle mesh: positions (n, 3) float64, faces (m, 3) int64 with every entry < n."""
+
+    positions: np.ndarray
+    faces: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.positions = np.asarray(self.positions, np.float64).reshape(-1, 3)
+        self.faces = np.asarray(self.faces, np.int64).reshape(-1, 3)
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.positions.shape[0])
+
+
+@dataclass
+class SourceObject:
+    """One object as the source gives it.
+
+    levels : coarsest → finest; usually one (full detail). A source that carries
+             several LoDs of one object (CityJSON LoD 1.2 / 1.3 / 2.2) gives them all,
+             and the builder keeps them as the object's LOD chain.
+    cls    : semantic class ("building", "terrain", "chair", ...), the Importance key
+    """
+
+    name: str
+    cls: str
+    levels: list[Mesh]
+    attributes: dict = field(default_factory=dict)
+
+
+@dataclass
+class HeightGrid:
+    """A regular height field: heights[row, col] at (origin[0] + col·spacing[0], origin[1] + row·spacing[1]).
+
+    heights : (rows, cols) float64; NaN where the source has no sample
+    origin  : (x, y) of sample [0, 0]
+    spacing : (dx, dy) > 0
+    """
+
+    name: str
+    heights: np.ndarray
+    origin: tuple[float, float]
+    spacing: tuple[float, float]
+    attributes: dict = field(default_factory=dict)
+
+
+@dataclass
+class TreeModel:
+    """A tree prototype: its mesh in model space (base at the origin, z up)."""
+
+    name: str
+    mesh: Mesh
+    attributes: dict = field(default_factory=dict)
+
+
+@dataclass
+class TreeInstances:
+    """Placed trees: instance i draws ``models[model[i]]`` with the 4×4 ``matrix[i]`` (model → world)."""
+
+    model: np.ndarray  # (k,) int32
+    matrix: np.ndarray  # (k, 4, 4) float64
+    names: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.model = np.asarray(self.model, np.int32).reshape(-1)
+        self.matrix = np.asarray(self.matrix, np.float64).reshape(-1, 4, 4)
+
+    def __len__(self) -> int:
+        return int(self.model.shape[0])
+
+
+@dataclass
+class SourceScene:
+    """Everything one or more sources hold: meshes, height grids, tree models and their instances."""
+
+    objects: list[SourceObject] = field(default_factory=list)
+    grids: list[HeightGrid] = field(default_factory=list)
+    tree_models: list[TreeModel] = field(default_factory=list)
+    trees: TreeInstances | None = None
+    crs: str | None = None
+    sources: list[str] = field(default_factory=list)
