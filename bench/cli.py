@@ -29,27 +29,36 @@ def _demo_store(objects: int, seed: int) -> Path:
     return DEFAULT_CACHE / f"demo-n{objects}-s{seed}-v{SCHEMA_VERSION}.db"
 
 
-def _build_demo_with_progress(path: Path, objects: int, seed: int, quiet: bool = False) -> dict:
+def _progress_bar(label: str, quiet: bool = False):
+    """A rich progress bar on stderr whose ``tick(stage, done, total)`` follows a build's stages."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from server.scene.build import build_demo
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with Progress(
-        TextColumn("[bold]building demo scene"),
+    bar = Progress(
+        TextColumn(f"[bold]{label}[/bold] {{task.description:<12}}"),
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
         transient=False,
         disable=quiet,
         console=_stderr_console(),
-    ) as progress:
-        task = progress.add_task("build", total=objects)
+    )
+    tasks: dict[str, int] = {}
 
-        def tick(done: int, total: int) -> None:
-            progress.update(task, completed=done, total=total)
+    def tick(stage: str, done: int, total: int) -> None:
+        if stage not in tasks:
+            tasks[stage] = bar.add_task(stage, total=max(total, 1))
+        bar.update(tasks[stage], completed=done, total=max(total, 1))
 
-        return build_demo(path, objects=objects, seed=seed, progress=tick)
+    return bar, tick
+
+
+def _build_demo_with_progress(path: Path, objects: int, seed: int, quiet: bool = False) -> dict:
+    from server.scene.catalog import build_named
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    bar, tick = _progress_bar("building demo", quiet)
+    with bar:
+        return build_named("demo", path, seed=seed, size=objects, progress=tick)
 
 
 def _stderr_console():
@@ -60,18 +69,94 @@ def _stderr_console():
 
 @app.command()
 def build(
-    source: str = typer.Argument(..., help="what to build: 'demo' (more sources come with the importers)"),
-    output: Path = typer.Option(..., "-o", "--output", help="the scene store to write (SQLite)"),
-    objects: int = typer.Option(576, help="demo: number of objects"),
-    seed: int = typer.Option(0, help="demo: random seed (same seed, same scene)"),
+    source: str = typer.Argument(..., help="a named scene (demo, auditorium, denhaag, sthelens, megacity) or a "
+                                 "path to a CityJSON, glTF/GLB, OBJ, PLY, USGS DEM, .npz or CityGML file"),
+    output: Optional[Path] = typer.Option(None, "-o", "--output",
+                                          help="the scene store to write (default: SOURCE.db in the current folder)"),
+    size: Optional[int] = typer.Option(None, help="scale of a named scene: objects (demo), buildings (megacity), "
+                                       "trees (denhaag, sthelens)"),
+    objects: Optional[int] = typer.Option(None, help="demo: number of objects (same as --size)"),
+    seed: int = typer.Option(0, help="random seed of a named scene (same seed, same scene)"),
+    workers: Optional[int] = typer.Option(None, help="worker processes (default: one per CPU)"),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
 ) -> None:
     """Build a scene store. The store appears only when the build completes."""
-    if source != "demo":
-        raise typer.BadParameter(f"unknown source {source!r}; this version builds 'demo'", param_hint="SOURCE")
-    if objects < 1:
-        raise typer.BadParameter("must be at least 1", param_hint="--objects")
-    summary = _build_demo_with_progress(output, objects, seed)
+    from server.scene.catalog import build_named, build_path, is_named
+    from server.scene.source import SourceError
+    from server.scene.store import StoreError
+
+    size = size if size is not None else objects
+    if size is not None and size < 1:
+        raise typer.BadParameter("must be at least 1", param_hint="--size")
+    if workers is not None and workers < 1:
+        raise typer.BadParameter("must be at least 1", param_hint="--workers")
+    named = is_named(source)
+    if not named and not Path(source).exists():
+        raise typer.BadParameter(
+            f"{source!r} is neither a named scene (demo, auditorium, denhaag, sthelens, megacity) nor an existing file",
+            param_hint="SOURCE")
+    if output is None:
+        output = Path(f"{source if named else Path(source).name.split('.')[0]}.db")
+    output.parent.mkdir(parents=True, exist_ok=True)
+    bar, tick = _progress_bar(f"building {source if named else Path(source).name}", quiet)
+    try:
+        with bar:
+            if named:
+                summary = build_named(source, output, seed=seed, size=size, workers=workers, progress=tick)
+            else:
+                summary = build_path(source, output, workers=workers, progress=tick)
+    except (SourceError, StoreError, FileNotFoundError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
     typer.echo(json.dumps({"store": str(output), **summary}, default=str))
+
+
+@app.command()
+def inspect(
+    store: Path = typer.Argument(..., help="a scene store"),
+    as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
+) -> None:
+    """Print what a scene store holds: objects, representations and triangles per kind and level, bytes, depth."""
+    from server.scene.inspect import format_report, inspect_store
+    from server.scene.store import StoreError
+
+    try:
+        report = inspect_store(store)
+    except StoreError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    if as_json:
+        typer.echo(json.dumps(report))
+    else:
+        for line in format_report(report):
+            typer.echo(line)
+
+
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: each prints its figures; --json for machines.")
+app.add_typer(bench_app, name="bench")
+
+
+@bench_app.command("build")
+def bench_build(
+    scenes: list[str] = typer.Option(["auditorium", "denhaag", "sthelens", "megacity"], "--scene",
+                                     help="named scenes to build (repeat the option)"),
+    size: Optional[int] = typer.Option(None, help="scale every scene to this size (buildings/trees)"),
+    workers: Optional[int] = typer.Option(None, help="worker processes (default: one per CPU)"),
+    keep: Optional[Path] = typer.Option(None, help="keep the stores in this folder (default: a temporary one)"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
+) -> None:
+    """Build scenes and report triangles built per second, store size and index load time."""
+    from bench.build import run_build_bench
+
+    bar, tick = _progress_bar("bench build", quiet=as_json)
+    with bar:
+        result = run_build_bench(scenes, size=size, workers=workers, keep=keep, progress=tick)
+    console = _stderr_console() if as_json else None
+    lines = result["lines"]
+    for line in lines:
+        (console.print(line) if console else typer.echo(line))
+    if as_json:
+        print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
 
 
 @app.command()

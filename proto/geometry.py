@@ -4,7 +4,9 @@ A representation is stored exactly as it is sent, so the server streams blobs
 without re-encoding them. Positions are quantized to 16 bits inside the
 object's box (the same box for every level of an object, so that levels line up
 for geomorphing) and both buffers go through meshoptimizer's codecs, which
-exploit the vertex-cache order that ``encode_geometry`` establishes first.
+exploit the vertex-cache order that ``encode_geometry`` establishes first
+(``order_for_gpu``; callers with per-vertex data apply it themselves and pass
+``reorder=False``).
 
 Payload (a msgpack map)::
 
@@ -27,7 +29,7 @@ import numpy as np
 
 from .errors import ProtocolError
 
-__all__ = ["ENCODING", "MAX_VERTICES", "MAX_FACES", "Geometry", "encode_geometry", "decode_geometry"]
+__all__ = ["ENCODING", "MAX_VERTICES", "MAX_FACES", "Geometry", "order_for_gpu", "encode_geometry", "decode_geometry"]
 
 ENCODING = "mq16"
 MAX_VERTICES = 1 << 22
@@ -76,11 +78,51 @@ def safe_box(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lo, ext
 
 
+def order_for_gpu(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reordering ``encode_geometry`` applies by default, done ahead of time.
+
+    Faces are reordered for the post-transform vertex cache (meshoptimizer's
+    ``optimize_vertex_cache``), then vertices are renumbered in first-use order
+    (``optimize_vertex_fetch``); vertices no face uses are dropped. Both make
+    the meshopt codecs (and the GPU) work well. A mesh in this order encodes
+    with ``encode_geometry(..., reorder=False)`` exactly as ``encode_geometry``
+    would encode the original, and its vertex ids are the ones stored — which
+    is what per-vertex data such as morph maps (``proto.morph``) must refer to.
+
+    positions : (n, 3) float
+    faces     : (m, 3) int, every entry < n, m > 0
+    Returns (positions (n', 3) float64, faces (m, 3) int64, new_of_old (n,) int64),
+    where ``new_of_old[v]`` is vertex v's new id, or −1 if v is unused.
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    faces = np.asarray(faces)
+    nv = positions.shape[0]
+    if positions.ndim != 2 or positions.shape[1] != 3 or nv == 0:
+        raise ValueError(f"positions must be (n, 3) with n > 0, got {positions.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
+        raise ValueError(f"faces must be (m, 3) with m > 0, got {faces.shape}")
+    if int(faces.min()) < 0 or int(faces.max()) >= nv:
+        raise ValueError(f"face indices must lie in 0..{nv - 1}")
+    flat = np.ascontiguousarray(faces, dtype=np.uint32).reshape(-1)
+    cached = np.zeros_like(flat)
+    meshoptimizer.optimize_vertex_cache(cached, flat, flat.size, nv)
+    remap = np.zeros(nv, dtype=np.uint32)
+    used = int(meshoptimizer.optimize_vertex_fetch_remap(remap, cached, cached.size, nv))
+    new_of_old = remap.astype(np.int64)
+    new_of_old[remap == np.iinfo(np.uint32).max] = -1
+    old_of_new = np.empty(used, dtype=np.int64)
+    kept = new_of_old >= 0
+    old_of_new[new_of_old[kept]] = np.flatnonzero(kept)
+    return positions[old_of_new], new_of_old[cached].reshape(-1, 3), new_of_old
+
+
 def encode_geometry(
     positions: np.ndarray,
     faces: np.ndarray,
     box_lo: np.ndarray | None = None,
     box_hi: np.ndarray | None = None,
+    *,
+    reorder: bool = True,
 ) -> bytes:
     """Encode a triangle mesh into a payload.
 
@@ -88,9 +130,13 @@ def encode_geometry(
     faces     : (nf, 3) int, every entry < nv
     box_lo, box_hi : (3,) float — the quantization box; defaults to the mesh's own
         bounds. Pass the object's box so that all levels of one object share it.
+    reorder   : put faces and vertices in GPU order first (``order_for_gpu``; unused
+        vertices are dropped). With ``reorder=False`` the payload holds the vertices
+        and faces exactly in the given order (unused vertices included), so stored
+        vertex ids are the caller's — pass a mesh already in GPU order.
     """
     positions = np.asarray(positions, dtype=np.float64)
-    faces = np.ascontiguousarray(np.asarray(faces), dtype=np.uint32)
+    faces = np.asarray(faces)
     nv, nf = positions.shape[0], faces.shape[0]
     if positions.ndim != 2 or positions.shape[1] != 3 or nv == 0:
         raise ValueError(f"positions must be (n, 3) with n > 0, got {positions.shape}")
@@ -98,27 +144,24 @@ def encode_geometry(
         raise ValueError(f"faces must be (m, 3) with m > 0, got {faces.shape}")
     if not np.isfinite(positions).all():
         raise ValueError("positions contain NaN or infinity")
+    if int(faces.min()) < 0:
+        raise ValueError(f"face index {int(faces.min())} is negative")
     if int(faces.max()) >= nv:
         raise ValueError(f"face index {int(faces.max())} out of range for {nv} vertices")
     if box_lo is None or box_hi is None:
         box_lo, box_hi = positions.min(axis=0), positions.max(axis=0)
     lo, ext = safe_box(box_lo, box_hi)
-
-    # Reorder for the post-transform cache, then vertices in first-use order:
-    # both make the meshopt codecs (and the GPU) work well.
-    flat = faces.reshape(-1)
-    cached = np.zeros_like(flat)
-    meshoptimizer.optimize_vertex_cache(cached, flat, flat.size, nv)
+    if reorder:
+        positions, faces, _ = order_for_gpu(positions, faces)
+    flat = np.ascontiguousarray(faces, dtype=np.uint32).reshape(-1)
     q = quantize(positions, lo, ext)
-    fetched = np.zeros_like(q)
-    used = meshoptimizer.optimize_vertex_fetch(fetched, cached, q, flat.size, nv, q.itemsize * 4)
-    fetched = fetched[:used]
-    vb = meshoptimizer.encode_vertex_buffer(fetched, used, 8)
-    ib = meshoptimizer.encode_index_buffer(cached, flat.size, used)
+    nv = q.shape[0]
+    vb = meshoptimizer.encode_vertex_buffer(q, nv, q.itemsize * 4)
+    ib = meshoptimizer.encode_index_buffer(flat, flat.size, nv)
     return msgpack.packb(
         {
             "enc": ENCODING,
-            "nv": int(used),
+            "nv": int(nv),
             "nf": int(nf),
             "lo": [float(x) for x in lo],
             "ext": [float(x) for x in ext],

@@ -1,8 +1,8 @@
 """Build the demo scene store: generate, simplify, measure error, encode, write.
 
 Each object is independent (its mesh derives from (seed, index) alone), so
-the work — mesh generation, the LOD chain, the error of each level and the
-encoding — runs in worker processes and only the finished payloads travel
+the work — mesh generation, the LOD chain with its geomorph maps, the error of
+each level and the encoding — runs in worker processes and only the finished payloads travel
 back; the parent writes them in object order through one ``SceneWriter``
 transaction. The result does not depend on the number of workers.
 
@@ -26,9 +26,10 @@ from typing import Callable, Iterator
 import numpy as np
 
 from proto.geometry import encode_geometry
+from proto.morph import encode_morph
 
 from .demo import DemoObject, generate_demo
-from .lod import build_chain, chain_errors
+from .lod import build_chain
 from .store import SceneStore, SceneWriter, object_box
 
 __all__ = ["build_demo", "build_object"]
@@ -37,16 +38,24 @@ __all__ = ["build_demo", "build_object"]
 _POOL_MIN_OBJECTS = 48
 
 
-def build_object(obj: DemoObject) -> tuple[DemoObject, np.ndarray, np.ndarray, list[float], list[bytes]]:
-    """One object's store rows: (object, box lo (3,), box hi (3,), errors per level, payloads per level).
+def build_object(
+    obj: DemoObject,
+) -> tuple[DemoObject, np.ndarray, np.ndarray, list[float], list[bytes], list[bytes | None]]:
+    """One object's store rows: (object, box lo (3,), box hi (3,), errors per level,
+    geometry payloads per level, morph payloads per level).
 
-    Levels are coarsest → finest; every level is quantized in one box (``object_box``).
+    Levels are coarsest → finest; every level is quantized in one box
+    (``object_box``) and stored in the chain's GPU order (``reorder=False``), so
+    the morph maps (``proto.morph``, from the simplifier's edge collapses) index
+    the stored vertices: entry k maps level k's vertices onto level k − 1's; entry 0 is None.
     """
     positions, faces = obj.mesh()
-    chain = build_chain(positions, faces)
-    errors = chain_errors(chain)
-    lo, hi = object_box(chain)
-    return obj, lo, hi, errors, [encode_geometry(p, f, lo, hi) for p, f in chain]
+    chain = build_chain(positions, faces, morph="collapse")
+    lo, hi = object_box(chain.levels)
+    blobs = [encode_geometry(p, f, lo, hi, reorder=False) for p, f in chain.levels]
+    morphs = [None if m is None else encode_morph(m, chain.levels[k - 1][0].shape[0])
+              for k, m in enumerate(chain.morph)]
+    return obj, lo, hi, chain.errors, blobs, morphs
 
 
 def _results(objects: list[DemoObject], workers: int) -> Iterator[tuple]:
@@ -88,8 +97,8 @@ def build_demo(
     reps = geometry_bytes = 0
     with SceneWriter(path, name=scene.name, generator="walkstream demo", seed=seed,
                      class_names=scene.class_names) as writer:
-        for done, (obj, lo, hi, errors, blobs) in enumerate(_results(scene.objects, workers), 1):
-            writer.add_encoded(obj.name, obj.cls, lo, hi, errors, blobs)
+        for done, (obj, lo, hi, errors, blobs, morphs) in enumerate(_results(scene.objects, workers), 1):
+            writer.add_encoded(obj.name, obj.cls, lo, hi, errors, blobs, morphs=morphs)
             reps += len(blobs)
             geometry_bytes += sum(len(b) for b in blobs)
             if progress is not None:

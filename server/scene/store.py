@@ -11,14 +11,32 @@ LOD"). Object ids are 0..n-1; representation ids are 0..m-1 in (object, level)
 order, so a representation's id is its row in the index arrays and an
 object's representations are ``rep_first[o] + arange(rep_count[o])``.
 
+Objects come in four kinds (``KINDS``): ``mesh`` (a discrete LOD chain; may
+hang under an HLOD node), ``hlod`` (an inner node of a building hierarchy,
+carrying a merged proxy of its subtree), ``terrain`` (a quadtree patch), and
+``trees`` (a group of ≤ 64 tree instances drawn as point splats at a continuous
+resolution x ∈ [0, 1]). Hierarchies are parent links; a parent's id is always
+less than its children's, so one pass in id order visits parents first.
+
 Schema (version ``SCHEMA_VERSION``; ``PRAGMA application_id`` marks the file)::
 
     meta(key TEXT PRIMARY KEY, value TEXT)             JSON values: schema_version, name, bounds,
-                                                        tour, start, class_names, generator, seed, created
-    objects(id INTEGER PRIMARY KEY, name TEXT, class INTEGER,
+                                                        tour, start, class_names, generator, seed,
+                                                        created, origin, crs, viewpoints, sources
+    objects(id INTEGER PRIMARY KEY, name TEXT, class INTEGER, kind INTEGER, parent INTEGER,
             lo_x, lo_y, lo_z, hi_x, hi_y, hi_z REAL)    box of each object over all its levels
     representations(id INTEGER PRIMARY KEY, object INTEGER, level INTEGER, faces INTEGER,
-                    vertices INTEGER, error REAL, bytes INTEGER, geometry BLOB)
+                    vertices INTEGER, error REAL, bytes INTEGER, geometry BLOB,
+                    morph BLOB NULL)                    morph: ``proto.morph`` map of this level's
+                                                        vertices onto the previous level's
+    models(id INTEGER PRIMARY KEY, name TEXT, points INTEGER, radius REAL,
+           lo_x, lo_y, lo_z, hi_x, hi_y, hi_z REAL, geometry BLOB)
+                                                        tree models as prefix-ordered point sets
+                                                        (``proto.points``), shared by tree groups
+
+A ``trees`` object's representation holds its instance list
+(``proto.points.encode_instances``); its ``vertices`` count is the group's
+splats at x = 1 and its ``faces`` count is 0.
 
 Writing is atomic (``SceneWriter``): the file is built under a temporary name
 in the target's directory and renamed over the target only when complete.
@@ -40,24 +58,36 @@ import msgpack
 import numpy as np
 
 from proto.geometry import encode_geometry
+from proto.morph import encode_morph
 from proto.messages import Pose, TourKey
 
-__all__ = ["SCHEMA_VERSION", "APPLICATION_ID", "StoreError", "SceneIndex", "SceneStore", "SceneWriter", "object_box"]
+__all__ = [
+    "SCHEMA_VERSION", "APPLICATION_ID", "KINDS", "MESH", "HLOD", "TERRAIN", "TREES",
+    "StoreError", "SceneIndex", "SceneStore", "SceneWriter", "object_box",
+]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 #: ``PRAGMA application_id`` of a walkstream store ("WkSt"), so foreign SQLite files are told apart.
 APPLICATION_ID = 0x576B5374
+#: Object kinds, by their id in the ``kind`` column.
+KINDS = ("mesh", "hlod", "terrain", "trees")
+MESH, HLOD, TERRAIN, TREES = range(4)
 
 _TABLES = {
     "meta": "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
     "objects": (
         "CREATE TABLE objects (id INTEGER PRIMARY KEY, name TEXT NOT NULL, class INTEGER NOT NULL, "
-        "lo_x REAL, lo_y REAL, lo_z REAL, hi_x REAL, hi_y REAL, hi_z REAL)"
+        "kind INTEGER NOT NULL, parent INTEGER NOT NULL, lo_x REAL, lo_y REAL, lo_z REAL, hi_x REAL, hi_y REAL, hi_z REAL)"
     ),
     "representations": (
         "CREATE TABLE representations (id INTEGER PRIMARY KEY, object INTEGER NOT NULL, "
         "level INTEGER NOT NULL, faces INTEGER NOT NULL, vertices INTEGER NOT NULL, "
-        "error REAL NOT NULL, bytes INTEGER NOT NULL, geometry BLOB NOT NULL)"
+        "error REAL NOT NULL, bytes INTEGER NOT NULL, geometry BLOB NOT NULL, morph BLOB)"
+    ),
+    "models": (
+        "CREATE TABLE models (id INTEGER PRIMARY KEY, name TEXT NOT NULL, points INTEGER NOT NULL, "
+        "radius REAL NOT NULL, lo_x REAL, lo_y REAL, lo_z REAL, hi_x REAL, hi_y REAL, hi_z REAL, "
+        "geometry BLOB NOT NULL)"
     ),
 }
 _META_KEYS = ("schema_version", "name", "bounds", "tour", "start", "class_names")
@@ -76,6 +106,11 @@ class SceneIndex:
     Objects (n of them, ids 0..n-1):
         object_lo, object_hi : (n, 3) float32 — box over all levels (≈ full detail), world space
         object_class         : (n,) int16 — index into ``class_names``
+        object_kind          : (n,) int8 — index into ``KINDS`` (mesh, hlod, terrain, trees)
+        object_parent        : (n,) int32 — parent object in its hierarchy, −1 for a root or a
+                               free object; always less than the object's own id
+        object_depth         : (n,) int16 — 0 for roots
+        child_ptr, child_ids : CSR children: the children of o are child_ids[child_ptr[o]:child_ptr[o+1]]
         rep_first            : (n,) int32 — id of the object's level 0 (coarsest)
         rep_count            : (n,) int32 — number of levels; the last is full detail
     Representations (m of them, ids 0..m-1, in (object, level) order):
@@ -86,6 +121,11 @@ class SceneIndex:
         rep_error    : (m,) float32 — object-space geometric error against full detail
                        (metres; 0 at full detail, non-increasing with level)
         rep_bytes    : (m,) int32 — size of the geometry payload
+        rep_morph    : (m,) bool — a morph map onto the previous level is stored
+    Tree models (M of them), shared by ``trees`` objects:
+        model_points : (M,) int32 — splats at full resolution
+        model_radius : (M,) float32 — splat radius at full resolution (model space)
+        model_lo, model_hi : (M, 3) float32 — model-space boxes
     Scene:
         bounds : (2, 3) float64 — [min, max] over all objects
         tour   : list of {"t", "eye", "forward", "up"} (``proto.messages.TourKey`` fields)
@@ -99,6 +139,11 @@ class SceneIndex:
     object_hi: np.ndarray
     object_class: np.ndarray
     class_names: list[str]
+    object_kind: np.ndarray
+    object_parent: np.ndarray
+    object_depth: np.ndarray
+    child_ptr: np.ndarray
+    child_ids: np.ndarray
     rep_first: np.ndarray
     rep_count: np.ndarray
     rep_object: np.ndarray
@@ -107,6 +152,11 @@ class SceneIndex:
     rep_vertices: np.ndarray
     rep_error: np.ndarray
     rep_bytes: np.ndarray
+    rep_morph: np.ndarray
+    model_points: np.ndarray
+    model_radius: np.ndarray
+    model_lo: np.ndarray
+    model_hi: np.ndarray
     tour: list[dict]
     start: dict
     meta: dict
@@ -118,6 +168,30 @@ class SceneIndex:
     @property
     def n_representations(self) -> int:
         return int(self.rep_object.shape[0])
+
+    def children(self, o: int) -> np.ndarray:
+        """Ids of object ``o``'s children (empty for a leaf)."""
+        return self.child_ids[self.child_ptr[o] : self.child_ptr[o + 1]]
+
+    @property
+    def leaf(self) -> np.ndarray:
+        """(n,) bool — objects without children."""
+        return np.diff(self.child_ptr) == 0
+
+    @property
+    def flat(self) -> np.ndarray:
+        """(n,) bool — the objects a flat (non-hierarchical) selection draws: triangle-mesh leaves.
+
+        Together they cover the whole scene at full detail: every building, every
+        finest terrain patch; HLOD proxies and coarse patches only stand in for them.
+        Tree groups need the splat renderer and the mixed solver, so they are left out.
+        """
+        return self.leaf & (self.object_kind != TREES)
+
+    @property
+    def height(self) -> int:
+        """Levels of the deepest hierarchy (1 for a scene without hierarchies)."""
+        return int(self.object_depth.max()) + 1 if self.n_objects else 0
 
 
 def _table_names(conn: sqlite3.Connection) -> set[str]:
@@ -159,12 +233,28 @@ class SceneStore:
 
     def geometries(self, reps: Iterable[int]) -> list[bytes]:
         """Payloads of several representations, in the order asked (a few SELECTs, not one per rep)."""
-        ids = [int(r) for r in reps]
-        m = self.index.n_representations
-        bad = [r for r in ids if not 0 <= r < m]
+        return self._blobs("representations", "geometry", reps, self.index.n_representations)
+
+    def morph(self, rep: int) -> bytes | None:
+        """The ``proto.morph`` map of ``rep``'s vertices onto the previous level's (None if not stored)."""
+        return self.morphs([rep])[0]
+
+    def morphs(self, reps: Iterable[int]) -> list[bytes | None]:
+        """Morph maps of several representations, in the order asked."""
+        return self._blobs("representations", "morph", reps, self.index.n_representations, nullable=True)
+
+    def model_geometries(self, models: Iterable[int]) -> list[bytes]:
+        """Point payloads (``proto.points``) of tree models, in the order asked."""
+        return self._blobs("models", "geometry", models, int(self.index.model_points.shape[0]))
+
+    def _blobs(self, table: str, column: str, ids_in: Iterable[int], count: int,
+               nullable: bool = False) -> list:
+        ids = [int(r) for r in ids_in]
+        what = "model" if table == "models" else "representation"
+        bad = [r for r in ids if not 0 <= r < count]
         if bad:
-            raise StoreError(f"{self.path}: unknown representation id {bad[0]} (store has 0..{m - 1})")
-        found: dict[int, bytes] = {}
+            raise StoreError(f"{self.path}: unknown {what} id {bad[0]} (store has 0..{count - 1})")
+        found: dict[int, bytes | None] = {}
         unique = sorted(set(ids))
         with self._lock:
             conn = self._connection()
@@ -172,15 +262,13 @@ class SceneStore:
                 for i in range(0, len(unique), _CHUNK):
                     part = unique[i : i + _CHUNK]
                     marks = ",".join("?" * len(part))
-                    for rid, blob in conn.execute(
-                        f"SELECT id, geometry FROM representations WHERE id IN ({marks})", part
-                    ):
-                        found[rid] = bytes(blob)
+                    for rid, blob in conn.execute(f"SELECT id, {column} FROM {table} WHERE id IN ({marks})", part):
+                        found[rid] = None if blob is None else bytes(blob)
             except sqlite3.Error as exc:
-                raise StoreError(f"{self.path}: cannot read geometry: {exc}") from None
-        missing = [r for r in unique if r not in found]
+                raise StoreError(f"{self.path}: cannot read {what} {column}: {exc}") from None
+        missing = [r for r in unique if r not in found or (found[r] is None and not nullable)]
         if missing:
-            raise StoreError(f"{self.path}: corrupt: representation {missing[0]} has no row")
+            raise StoreError(f"{self.path}: corrupt: {what} {missing[0]} has no {column}")
         return [found[r] for r in ids]
 
     def object_names(self) -> list[str]:
@@ -233,15 +321,22 @@ def _load_index(path: Path, conn: sqlite3.Connection) -> SceneIndex:
         raise StoreError(f"{path}: corrupt: meta lacks {', '.join(absent)}")
     try:
         obj = conn.execute(
-            "SELECT id, class, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z FROM objects ORDER BY id"
+            "SELECT id, class, kind, parent, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z FROM objects ORDER BY id"
         ).fetchall()
         rep = conn.execute(
-            "SELECT id, object, level, faces, vertices, error, bytes FROM representations ORDER BY id"
+            "SELECT id, object, level, faces, vertices, error, bytes, morph IS NOT NULL "
+            "FROM representations ORDER BY id"
+        ).fetchall()
+        mod = conn.execute(
+            "SELECT id, points, radius, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z FROM models ORDER BY id"
         ).fetchall()
     except sqlite3.Error as exc:
         raise StoreError(f"{path}: corrupt: {exc}") from None
-    o = np.array(obj, np.float64).reshape(-1, 8)
-    r = np.array(rep, np.float64).reshape(-1, 7)
+    o = np.array(obj, np.float64).reshape(-1, 10)
+    r = np.array(rep, np.float64).reshape(-1, 8)
+    md = np.array(mod, np.float64).reshape(-1, 9)
+    if not np.array_equal(md[:, 0], np.arange(md.shape[0])):
+        raise StoreError(f"{path}: corrupt: model ids are not 0..{md.shape[0] - 1}")
     n, m = o.shape[0], r.shape[0]
     if not np.array_equal(o[:, 0], np.arange(n)):
         raise StoreError(f"{path}: corrupt: object ids are not 0..{n - 1}")
@@ -262,13 +357,35 @@ def _load_index(path: Path, conn: sqlite3.Connection) -> SceneIndex:
     class_names = [str(c) for c in meta["class_names"]]
     if n and (classes.min() < 0 or classes.max() >= len(class_names)):
         raise StoreError(f"{path}: corrupt: object class outside class_names")
+    kind = o[:, 2].astype(np.int8)
+    if n and (kind.min() < 0 or kind.max() >= len(KINDS)):
+        raise StoreError(f"{path}: corrupt: object kind outside 0..{len(KINDS) - 1}")
+    parent = o[:, 3].astype(np.int32)
+    bad = np.nonzero((parent < -1) | (parent >= np.arange(n)))[0]
+    if bad.size:
+        raise StoreError(f"{path}: corrupt: object {int(bad[0])} has parent {int(parent[bad[0]])} "
+                         "(parents must precede their children)")
+    depth = np.zeros(n, np.int16)
+    up = parent.copy()
+    while (up >= 0).any():  # pointer jumping: one vectorised step per hierarchy level
+        depth += up >= 0
+        up = np.where(up >= 0, parent[np.maximum(up, 0)], -1)
+    child_ids = np.nonzero(parent >= 0)[0].astype(np.int32)
+    child_ids = child_ids[np.argsort(parent[child_ids], kind="stable")]
+    child_ptr = np.zeros(n + 1, np.int64)
+    child_ptr[1:] = np.cumsum(np.bincount(parent[child_ids], minlength=n)) if child_ids.size else 0
     return SceneIndex(
         name=str(meta["name"]),
         bounds=np.asarray(meta["bounds"], np.float64).reshape(2, 3),
-        object_lo=o[:, 2:5].astype(np.float32),
-        object_hi=o[:, 5:8].astype(np.float32),
+        object_lo=o[:, 4:7].astype(np.float32),
+        object_hi=o[:, 7:10].astype(np.float32),
         object_class=classes,
         class_names=class_names,
+        object_kind=kind,
+        object_parent=parent,
+        object_depth=depth,
+        child_ptr=child_ptr,
+        child_ids=child_ids,
         rep_first=rep_first,
         rep_count=rep_count,
         rep_object=rep_object,
@@ -277,6 +394,11 @@ def _load_index(path: Path, conn: sqlite3.Connection) -> SceneIndex:
         rep_vertices=r[:, 4].astype(np.int32),
         rep_error=r[:, 5].astype(np.float32),
         rep_bytes=r[:, 6].astype(np.int32),
+        rep_morph=r[:, 7].astype(bool),
+        model_points=md[:, 1].astype(np.int32),
+        model_radius=md[:, 2].astype(np.float32),
+        model_lo=md[:, 3:6].astype(np.float32),
+        model_hi=md[:, 6:9].astype(np.float32),
         tour=list(meta["tour"]),
         start=dict(meta["start"]),
         meta=meta,
@@ -322,6 +444,8 @@ class SceneWriter:
         self._classes: dict[str, int] = {c: i for i, c in enumerate(dict.fromkeys(class_names))}
         self._n_objects = 0
         self._n_reps = 0
+        self._n_models = 0
+        self._extra: dict[str, Any] = {}
         self._lo = np.full(3, np.inf)
         self._hi = np.full(3, -np.inf)
         self._tour: list[dict] = []
@@ -347,51 +471,85 @@ class SceneWriter:
             raise StoreError(f"{self.path}: cannot build store: {exc}") from None
 
     @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) over the objects added so far."""
+        return self._lo.copy(), self._hi.copy()
+
+    @property
     def temporary_path(self) -> Path:
         """Where the store is being built (deleted on abort, renamed on commit)."""
         return self._tmp
 
     def add_object(self, name: str, cls: str, levels: Sequence[tuple[np.ndarray, np.ndarray]],
-                   errors: Sequence[float]) -> int:
+                   errors: Sequence[float], *, kind: int = MESH, parent: int = -1,
+                   morphs: Sequence[np.ndarray | None] | None = None, reorder: bool = True) -> int:
         """Encode and add one object's levels; returns its id.
 
         levels : [(positions (n_k, 3) float, faces (m_k, 3) int), ...] coarsest → finest;
                  the last is full detail; one box (``object_box``) quantizes every level
         errors : geometric error of each level against full detail, same order
+        morphs : per level, None or the (n_k,) map of its vertices onto level k−1's
+                 (then the levels must already be in GPU order: pass ``reorder=False``)
         """
         self._check_open()
         if len(levels) == 0 or len(levels) != len(errors):
             raise ValueError(f"object {name!r}: {len(levels)} levels but {len(errors)} errors")
+        if morphs is not None and reorder and any(m is not None for m in morphs):
+            raise ValueError(f"object {name!r}: morph maps need levels in stored order (reorder=False)")
         lo, hi = object_box(levels)
-        blobs = [encode_geometry(p, f, lo, hi) for p, f in levels]
-        return self.add_encoded(name, cls, lo, hi, errors, blobs)
+        blobs = [encode_geometry(p, f, lo, hi, reorder=reorder) for p, f in levels]
+        encoded = None
+        if morphs is not None:
+            encoded = [None if m is None else encode_morph(m, levels[k - 1][0].shape[0])
+                       for k, m in enumerate(morphs)]
+        return self.add_encoded(name, cls, lo, hi, errors, blobs, kind=kind, parent=parent, morphs=encoded)
 
     def add_encoded(self, name: str, cls: str, lo: np.ndarray, hi: np.ndarray, errors: Sequence[float],
-                    blobs: Sequence[bytes]) -> int:
-        """Add one object whose levels are already encoded (``proto.geometry``), coarsest → finest.
+                    blobs: Sequence[bytes], *, kind: int = MESH, parent: int = -1,
+                    morphs: Sequence[bytes | None] | None = None,
+                    counts: Sequence[tuple[int, int]] | None = None) -> int:
+        """Add one object whose levels are already encoded, coarsest → finest; returns its id.
 
         For builders that encode in worker processes. Face and vertex counts
-        are read from the payloads, so they are what the client will draw.
+        are read from triangle payloads (``proto.geometry``), so they are what
+        the client will draw; other payloads (a tree group's instance list)
+        pass ``counts`` as (vertices, faces) per level.
         lo, hi : (3,) float — the object's box (``object_box``), the one its payloads are quantized in
+        kind   : one of ``MESH, HLOD, TERRAIN, TREES``
+        parent : an object already added (its id), or −1
+        morphs : per level, None or an encoded ``proto.morph`` map onto the previous level
         """
         self._check_open()
         k = len(blobs)
         if k == 0 or len(errors) != k:
             raise ValueError(f"object {name!r}: {k} levels but {len(errors)} errors")
-        counts = [_payload_counts(b) for b in blobs]
+        if not 0 <= kind < len(KINDS):
+            raise ValueError(f"object {name!r}: kind {kind} is not one of 0..{len(KINDS) - 1}")
+        if not -1 <= parent < self._n_objects:
+            raise ValueError(f"object {name!r}: parent {parent} is not an object added before it")
+        if morphs is not None and (len(morphs) != k or morphs[0] is not None):
+            raise ValueError(f"object {name!r}: morphs must give one entry per level, None for level 0")
+        if counts is None:
+            counts = [_payload_counts(b) for b in blobs]
+        elif len(counts) != k:
+            raise ValueError(f"object {name!r}: {k} levels but {len(counts)} counts")
+        morphs = morphs if morphs is not None else [None] * k
         cls_id = self._classes.setdefault(cls, len(self._classes))
         oid = self._n_objects
         lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()):
+            raise ValueError(f"object {name!r}: box {lo.tolist()}..{hi.tolist()} is not finite and ordered")
         try:
             self._conn.execute(
-                "INSERT INTO objects VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (oid, name, cls_id, *map(float, lo), *map(float, hi)),
+                "INSERT INTO objects VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (oid, name, cls_id, int(kind), int(parent), *map(float, lo), *map(float, hi)),
             )
             self._conn.executemany(
-                "INSERT INTO representations VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                "INSERT INTO representations VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 [
-                    (self._n_reps + i, oid, i, counts[i][1], counts[i][0], float(errors[i]), len(blobs[i]),
-                     sqlite3.Binary(blobs[i]))
+                    (self._n_reps + i, oid, i, int(counts[i][1]), int(counts[i][0]), float(errors[i]),
+                     len(blobs[i]), sqlite3.Binary(blobs[i]),
+                     None if morphs[i] is None else sqlite3.Binary(morphs[i]))
                     for i in range(k)
                 ],
             )
@@ -401,6 +559,32 @@ class SceneWriter:
         self._n_reps += k
         self._lo, self._hi = np.minimum(self._lo, lo), np.maximum(self._hi, hi)
         return oid
+
+    def add_model(self, name: str, blob: bytes, points: int, radius: float, lo: np.ndarray,
+                  hi: np.ndarray) -> int:
+        """Add a tree model's point payload (``proto.points``); returns its id for instance lists."""
+        self._check_open()
+        mid = self._n_models
+        try:
+            self._conn.execute(
+                "INSERT INTO models VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (mid, name, int(points), float(radius), *map(float, np.asarray(lo).reshape(3)),
+                 *map(float, np.asarray(hi).reshape(3)), sqlite3.Binary(blob)),
+            )
+        except sqlite3.Error as exc:
+            raise StoreError(f"{self.path}: cannot add model {name!r}: {exc}") from None
+        self._n_models += 1
+        return mid
+
+    def set_meta(self, **values: Any) -> None:
+        """Extra JSON meta values (origin, crs, viewpoints, sources, …), written on commit."""
+        self._check_open()
+        reserved = set(_META_KEYS) | {"generator", "seed", "created"}
+        clash = reserved & set(values)
+        if clash:
+            raise ValueError(f"meta keys {sorted(clash)} are set by the writer itself")
+        json.dumps(values)  # fail now, not at commit
+        self._extra.update(values)
 
     def set_tour(self, keys: Iterable[Any]) -> None:
         """The scene's camera tour: ``TourKey`` objects or {"t", "eye", "forward", "up"} mappings.
@@ -440,6 +624,7 @@ class SceneWriter:
             "generator": self.generator,
             "seed": self.seed,
             "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            **self._extra,
         }
         try:
             self._conn.executemany("INSERT INTO meta VALUES (?, ?)", [(k, json.dumps(v)) for k, v in meta.items()])

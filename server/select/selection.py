@@ -37,8 +37,15 @@ class Levels:
 
     @classmethod
     def of(cls, index) -> "Levels":
+        """The flat view of a scene index: its triangle-mesh leaves (``SceneIndex.flat``).
+
+        HLOD proxies, coarse terrain patches and tree groups need the
+        hierarchical and mixed solvers; a flat selection draws the leaves only.
+        """
+        flat = np.nonzero(index.flat)[0]
         return cls(
-            index.object_lo, index.object_hi, index.rep_first, index.rep_count, index.rep_faces, index.rep_vertices
+            index.object_lo[flat], index.object_hi[flat], index.rep_first[flat], index.rep_count[flat],
+            index.rep_faces, index.rep_vertices,
         )
 
 

@@ -1,0 +1,315 @@
+"""Turn a ``SourceScene`` into a scene store: LOD chains, hierarchies, point models, tour.
+
+The stages, each with its own progress count:
+
+1. **chains** — every mesh object gets its LOD chain (quadric decimation with
+   collapse-map morphs, or the levels the source gave with nearest-vertex
+   morphs), its errors and its payloads, in worker processes;
+2. **hlod** — when the scene has many buildings, an HLOD tree over them whose
+   inner nodes carry merged, simplified proxies (one root covers the city);
+3. **terrain** — each height grid becomes a quadtree of patches with skirts;
+4. **trees** — tree models become prefix-ordered point sets, instances are
+   grouped ≤ 64 per quadtree leaf;
+5. **write** — everything goes into one ``SceneWriter`` transaction, parents
+   before children, so a failed build leaves no store behind.
+
+Geometry is recentred on an ``origin`` (recorded in meta) before anything is
+encoded: CityJSON and DEM coordinates are hundreds of kilometres from their
+datum, and float32 on the GPU would keep only decimetres there.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import os
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+import numpy as np
+
+from proto.geometry import encode_geometry
+from proto.morph import encode_morph
+
+from .lod import build_chain, chain_from_levels
+from .source import Mesh, SourceObject, SourceScene
+from .store import HLOD, MESH, TERRAIN, TREES, SceneStore, SceneWriter, StoreError, object_box
+from .tour import orbit_tour
+
+__all__ = ["BuildOptions", "build_store", "Progress"]
+
+#: progress(stage, done, total)
+Progress = Callable[[str, int, int], None]
+
+#: Below this many objects a process pool costs more than it saves.
+_POOL_MIN_OBJECTS = 48
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """How a scene is built; the defaults suit real data.
+
+    hlod            : "auto" builds an HLOD tree when at least ``hlod_min`` objects are
+                      buildings (or, for a generic source, any mesh objects); True/False force it
+    hlod_classes    : classes that go into the HLOD tree ("auto": building-like classes)
+    morph           : "collapse" (topology-consistent, from the simplifier) or "nearest" (Zach 2002)
+    min_saving      : a coarser level must save at least this share of the faces
+    patch           : terrain patch size in grid cells
+    points_per_model: splats per tree model at full resolution
+    max_group       : trees per group (ZMK: 64)
+    workers         : processes for the chain stage (default: one per CPU, at most 8)
+    """
+
+    hlod: bool | str = "auto"
+    hlod_min: int = 64
+    hlod_classes: tuple[str, ...] | None = None
+    morph: str = "collapse"
+    min_saving: float = 0.4
+    patch: int = 32
+    points_per_model: int = 4096
+    max_group: int = 64
+    workers: int | None = None
+
+
+_BUILDING_CLASSES = ("building", "buildingpart", "building_part", "house")
+
+
+def _chain_job(args: tuple) -> tuple:
+    """One object's rows: (lo, hi, errors, geometry blobs, morph blobs, coarsest mesh)."""
+    levels, morph, min_saving = args
+    if len(levels) == 1:
+        chain = build_chain(levels[0][0], levels[0][1], min_saving=min_saving, morph=morph)
+    else:
+        chain = chain_from_levels(levels, morph="nearest")
+    lo, hi = object_box(chain.levels)
+    blobs = [encode_geometry(p, f, lo, hi, reorder=False) for p, f in chain.levels]
+    morphs = [None] + [encode_morph(m, chain.levels[k - 1][0].shape[0]) for k, m in enumerate(chain.morph)
+                       if k > 0]
+    coarsest = chain.levels[0]
+    return lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest
+
+
+def _pool_map(fn: Callable, jobs: Sequence, workers: int) -> Iterator:
+    if workers <= 1 or len(jobs) < _POOL_MIN_OBJECTS:
+        yield from map(fn, jobs)
+        return
+    # fork is fast, but unsafe once other threads exist (inside a server); spawn then.
+    single = threading.active_count() == 1 and "fork" in multiprocessing.get_all_start_methods()
+    context = multiprocessing.get_context("fork" if single else "spawn")
+    chunk = max(1, min(64, len(jobs) // (workers * 16)))
+    with ProcessPoolExecutor(workers, mp_context=context) as pool:
+        yield from pool.map(fn, jobs, chunksize=chunk)
+
+
+def scene_origin(source: SourceScene) -> np.ndarray:
+    """A round-numbered point near the scene's centre (xy) and ground (z) to recentre on."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for obj in source.objects:
+        for m in obj.levels:
+            if m.n_vertices:
+                lo = np.minimum(lo, m.positions.min(axis=0))
+                hi = np.maximum(hi, m.positions.max(axis=0))
+    for g in source.grids:
+        rows, cols = g.heights.shape
+        x0, y0 = g.origin
+        lo = np.minimum(lo, [x0, y0, np.nanmin(g.heights)])
+        hi = np.maximum(hi, [x0 + (cols - 1) * g.spacing[0], y0 + (rows - 1) * g.spacing[1], np.nanmax(g.heights)])
+    if source.trees is not None and len(source.trees):
+        t = source.trees.matrix[:, :3, 3]
+        lo, hi = np.minimum(lo, t.min(axis=0)), np.maximum(hi, t.max(axis=0))
+    if not np.isfinite(lo).all():
+        raise ValueError("the scene holds no geometry")
+    centre = (lo + hi) / 2
+    span = float(np.max(hi - lo))
+    step = 10.0 ** max(0, math.floor(math.log10(max(span, 1.0))) - 1)  # keep the origin a round number
+    origin = np.round(centre / step) * step
+    origin[2] = 0.0 if abs(lo[2]) < 10 * max(span, 1.0) else math.floor(lo[2])
+    return origin
+
+
+def _is_building(cls: str) -> bool:
+    return cls.lower() in _BUILDING_CLASSES
+
+
+def build_store(
+    path: str | os.PathLike[str],
+    source: SourceScene,
+    *,
+    name: str | None = None,
+    tour: list[dict] | None = None,
+    viewpoints: dict[str, float] | None = None,
+    seed: int | None = None,
+    generator: str = "walkstream build",
+    options: BuildOptions = BuildOptions(),
+    progress: Progress | None = None,
+    recentre: bool = True,
+) -> dict:
+    """Build ``source`` into a new store at ``path`` (atomically); returns a summary.
+
+    tour       : the camera tour in source coordinates; default: an orbit of the scene
+    viewpoints : named tour times (e.g. F&S's A, B, C), recorded in meta
+    """
+    started = time.perf_counter()
+    tick = progress or (lambda stage, done, total: None)
+    origin = scene_origin(source) if recentre else np.zeros(3)
+    workers = options.workers or min(8, os.cpu_count() or 1)
+    timings: dict[str, float] = {}
+
+    # 1. chains
+    t0 = time.perf_counter()
+    objects = [o for o in source.objects if o.levels and all(m.n_faces for m in o.levels)]
+    jobs = [([(m.positions - origin, m.faces) for m in o.levels], options.morph, options.min_saving)
+            for o in objects]
+    chains: list[tuple] = []
+    tick("chains", 0, len(jobs))
+    for done, result in enumerate(_pool_map(_chain_job, jobs, workers), 1):
+        chains.append(result)
+        tick("chains", done, len(jobs))
+    timings["chains"] = time.perf_counter() - t0
+
+    # 2. HLOD over buildings
+    t0 = time.perf_counter()
+    classes = options.hlod_classes
+    if classes is None:
+        has_buildings = any(_is_building(o.cls) for o in objects)
+        members = [i for i, o in enumerate(objects)
+                   if (_is_building(o.cls) if has_buildings else o.cls not in ("terrain", "ground"))]
+    else:
+        members = [i for i, o in enumerate(objects) if o.cls in classes]
+    use_hlod = options.hlod is True or (options.hlod == "auto" and len(members) >= options.hlod_min)
+    tree = None
+    if use_hlod and len(members) >= 2:
+        from .hlod import build_hlod
+
+        lo = np.array([chains[i][0] for i in members])
+        hi = np.array([chains[i][1] for i in members])
+        proxies = [Mesh(*chains[i][5]) for i in members]
+        tree = build_hlod(lo, hi, proxies, progress=lambda d, t: tick("hlod", d, t))
+    timings["hlod"] = time.perf_counter() - t0
+
+    # 3. terrain quadtrees
+    t0 = time.perf_counter()
+    terrains = []
+    if source.grids:
+        from .source import HeightGrid
+        from .terrain import build_quadtree
+
+        for g in source.grids:
+            shifted = HeightGrid(g.name, g.heights - origin[2], (g.origin[0] - origin[0], g.origin[1] - origin[1]),
+                                 g.spacing, g.attributes)
+            terrains.append((g.name, build_quadtree(shifted, patch=options.patch)))
+            tick("terrain", len(terrains), len(source.grids))
+    timings["terrain"] = time.perf_counter() - t0
+
+    # 4. trees
+    t0 = time.perf_counter()
+    models = []
+    groups = None
+    if source.trees is not None and len(source.trees):
+        from proto.points import encode_instances, encode_points
+
+        from .points import point_model
+        from .vegetation import group_trees
+
+        for i, tm in enumerate(source.tree_models):
+            pm = point_model(tm, n_points=options.points_per_model, seed=(seed or 0) * 7919 + i)
+            models.append(pm)
+            tick("tree models", i + 1, len(source.tree_models))
+        shifted = source.trees.matrix.copy()
+        shifted[:, :3, 3] -= origin
+        from .source import TreeInstances
+
+        placed = TreeInstances(source.trees.model, shifted, source.trees.names)
+        groups = group_trees(placed, [int(m.positions.shape[0]) for m in models], max_group=options.max_group,
+                             model_boxes=[(m.lo, m.hi) for m in models])
+    timings["trees"] = time.perf_counter() - t0
+
+    # 5. write
+    t0 = time.perf_counter()
+    counts = {k: 0 for k in ("mesh", "hlod", "terrain", "trees")}
+    with SceneWriter(path, name=name or Path(path).stem, generator=generator, seed=seed) as writer:
+        total = len(objects) + (len(tree.parent) if tree is not None else 0) + sum(
+            len(t.parent) for _, t in terrains) + (len(groups.group_first) if groups is not None else 0)
+        written = 0
+
+        def wrote() -> None:
+            nonlocal written
+            written += 1
+            if written % 256 == 0 or written == total:
+                tick("write", written, total)
+
+        node_id: list[int] = []
+        if tree is not None:
+            for j in range(len(tree.parent)):
+                p, f = tree.proxies[j].positions, tree.proxies[j].faces
+                lo, hi = np.asarray(tree.lo[j], np.float64), np.asarray(tree.hi[j], np.float64)
+                blob = encode_geometry(p, f, np.minimum(lo, p.min(axis=0)), np.maximum(hi, p.max(axis=0)))
+                parent = -1 if tree.parent[j] < 0 else node_id[tree.parent[j]]
+                node_id.append(writer.add_encoded(f"hlod_{j}", "hlod", np.minimum(lo, p.min(axis=0)),
+                                                  np.maximum(hi, p.max(axis=0)), [float(tree.error[j])], [blob],
+                                                  kind=HLOD, parent=parent))
+                counts["hlod"] += 1
+                wrote()
+        parent_of = np.full(len(objects), -1)
+        if tree is not None:
+            parent_of[members] = np.asarray(node_id)[np.asarray(tree.object_parent)]
+        for i, (obj, (lo, hi, errors, blobs, morphs, _)) in enumerate(zip(objects, chains)):
+            writer.add_encoded(obj.name, obj.cls, lo, hi, errors, blobs, kind=MESH, parent=int(parent_of[i]),
+                               morphs=morphs)
+            counts["mesh"] += 1
+            wrote()
+        for tname, t in terrains:
+            ids: list[int] = []
+            for j in range(len(t.parent)):
+                p, f = t.mesh(j)
+                lo, hi = p.min(axis=0), p.max(axis=0)
+                parent = -1 if t.parent[j] < 0 else ids[t.parent[j]]
+                ids.append(writer.add_encoded(f"{tname}/patch_{j}", "terrain", lo, hi, [float(t.error[j])],
+                                              [encode_geometry(p, f, lo, hi)], kind=TERRAIN, parent=parent))
+                counts["terrain"] += 1
+                wrote()
+        if groups is not None:
+            for k, pm in enumerate(models):
+                writer.add_model(pm.name, encode_points(pm), int(pm.positions.shape[0]), float(pm.radius[-1]),
+                                 pm.lo, pm.hi)
+            order = groups.order
+            for g in range(len(groups.group_first)):
+                sel = order[groups.group_first[g] : groups.group_first[g] + groups.group_count[g]]
+                blob = encode_instances(placed.model[sel], placed.matrix[sel])
+                writer.add_encoded(f"trees_{g}", "trees", groups.lo[g], groups.hi[g], [0.0], [blob], kind=TREES,
+                                   counts=[(int(groups.points[g]), 0)])
+                counts["trees"] += 1
+                wrote()
+        if tour is None:
+            tour_keys = orbit_tour(*writer.bounds)
+        else:
+            tour_keys = [{**k, "eye": (np.asarray(k["eye"], np.float64) - origin).tolist()} for k in tour]
+        writer.set_tour(tour_keys)
+        writer.set_meta(origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {},
+                        sources=list(source.sources), kinds=counts,
+                        tree_instances=len(source.trees) if source.trees is not None else 0)
+    timings["write"] = time.perf_counter() - t0
+
+    with SceneStore.open(path) as store:
+        idx = store.index
+        full = idx.rep_first + idx.rep_count - 1
+        flat = idx.flat
+        triangles = int(idx.rep_faces[full[flat]].sum())
+        height = idx.height
+    return {
+        "path": str(path),
+        "objects": counts,
+        "representations": int(idx.n_representations),
+        "triangles": triangles,
+        "tree_instances": len(source.trees) if source.trees is not None else 0,
+        "hierarchy_depth": height,
+        "bytes": Path(path).stat().st_size,
+        "seconds": round(time.perf_counter() - started, 2),
+        "stages": {k: round(v, 2) for k, v in timings.items()},
+    }
+

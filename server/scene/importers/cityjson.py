@@ -1,0 +1,326 @@
+"""CityJSON 1.0 / 1.1 / 2.0 → SourceScene: one SourceObject per CityObject with surface geometry.
+
+An object's geometries at different LoDs become its levels, coarsest → finest, which
+is the LOD chain the builder keeps. All polygons of the file are triangulated in one
+vectorised pass (polygons.py); each level then gets a compact vertex array of its own.
+The whole file is validated before anything is returned, so a malformed file never
+yields a partial scene.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..source import Mesh, SourceError, SourceObject, SourceScene
+from .polygons import Rings, flatten_polygons, triangulate_rings
+
+__all__ = ["SUPPORTED_VERSIONS", "load_cityjson", "normalise_crs"]
+
+SUPPORTED_VERSIONS = ("1.0", "1.1", "2.0")
+
+# How many list levels sit above a polygon (list of rings) in each geometry type's boundaries.
+_DEPTH = {"MultiSurface": 1, "CompositeSurface": 1, "Solid": 2, "MultiSolid": 3, "CompositeSolid": 3}
+_NO_SURFACES = {"MultiPoint", "MultiLineString"}  # valid CityJSON, nothing to draw
+
+
+def load_cityjson(path: str | Path) -> SourceScene:
+    """Read a CityJSON file; ``SourceError`` names the file and the offending place on malformed input."""
+    path = Path(path)
+    doc = _read_json(path)
+    _check_header(path, doc)
+    vertices = _vertices(path, doc)
+    city_objects = doc.get("CityObjects")
+    if not isinstance(city_objects, dict):
+        raise SourceError(f"{path}: 'CityObjects' is missing or not an object")
+    walk = _Walk(path, vertices, doc.get("geometry-templates"))
+    for oid, obj in city_objects.items():
+        walk.add_object(str(oid), obj)
+    objects = walk.build()
+    if not objects:
+        raise SourceError(f"{path}: no CityObject has surface geometry")
+    return SourceScene(objects=objects, crs=normalise_crs(_reference_system(doc)), sources=[str(path)])
+
+
+def normalise_crs(ref: str | None) -> str | None:
+    """``urn:ogc:def:crs:EPSG::7415`` / ``https://www.opengis.net/def/crs/EPSG/0/7415`` → ``EPSG:7415``."""
+    if ref is None:
+        return None
+    ref = str(ref).strip()
+    m = (re.search(r"EPSG/[^/]*/(\d+)\s*$", ref, re.I) or re.search(r"EPSG:[\d.]*:(\d+)\s*$", ref, re.I)
+         or re.fullmatch(r"EPSG:(\d+)", ref, re.I))
+    return f"EPSG:{m.group(1)}" if m else ref
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise SourceError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    try:
+        doc = json.loads(raw)
+    except json.JSONDecodeError as exc:
+        raise SourceError(f"{path}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
+    except UnicodeDecodeError as exc:
+        raise SourceError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+    if not isinstance(doc, dict):
+        raise SourceError(f"{path}: top level is a JSON {type(doc).__name__}, expected a CityJSON object")
+    return doc
+
+
+def _check_header(path: Path, doc: dict) -> None:
+    if doc.get("type") != "CityJSON":
+        raise SourceError(f"{path}: 'type' is {doc.get('type')!r}, expected 'CityJSON'")
+    version = str(doc.get("version", ""))
+    if ".".join(version.split(".")[:2]) not in SUPPORTED_VERSIONS:
+        raise SourceError(f"{path}: CityJSON version {version or '(missing)'!r} is not supported "
+                          f"(supported: {', '.join(SUPPORTED_VERSIONS)})")
+
+
+def _vertices(path: Path, doc: dict) -> np.ndarray:
+    """The decoded (n, 3) float64 vertices: ``transform`` applied to integer vertices when present."""
+    if "vertices" not in doc:
+        raise SourceError(f"{path}: 'vertices' is missing")
+    rows = doc["vertices"]
+    if not isinstance(rows, list):
+        raise SourceError(f"{path}: 'vertices' is not a list")
+    v = _numeric_rows(path, "vertices", rows)
+    transform = doc.get("transform")
+    if transform is not None:
+        scale = _triple(path, transform, "scale")
+        translate = _triple(path, transform, "translate")
+        v = v * scale + translate
+    finite = np.isfinite(v).all(axis=1)
+    if not finite.all():
+        i = int(np.argmin(finite))
+        raise SourceError(f"{path}: vertices[{i}] = {rows[i]!r} is not finite")
+    return v
+
+
+def _numeric_rows(path: Path, where: str, rows: list) -> np.ndarray:
+    """rows as (n, 3) float64; the first row that is not three numbers is named on failure."""
+    if not rows:
+        return np.zeros((0, 3))
+    try:
+        arr = np.array(rows)
+    except (ValueError, TypeError):
+        arr = None
+    if arr is not None and arr.ndim == 2 and arr.shape[1] == 3 and arr.dtype.kind in "iuf":
+        return arr.astype(np.float64)
+    for i, row in enumerate(rows):
+        if not (isinstance(row, list) and len(row) == 3
+                and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in row)):
+            raise SourceError(f"{path}: {where}[{i}] = {row!r} is not three numbers")
+    raise SourceError(f"{path}: {where} hold numbers out of range")
+
+
+def _triple(path: Path, transform: dict, key: str) -> np.ndarray:
+    value = transform.get(key) if isinstance(transform, dict) else None
+    if not (isinstance(value, list) and len(value) == 3
+            and all(isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in value)):
+        raise SourceError(f"{path}: transform.{key} = {value!r} is not three finite numbers")
+    return np.asarray(value, np.float64)
+
+
+def _reference_system(doc: dict) -> str | None:
+    meta = doc.get("metadata")
+    if not isinstance(meta, dict):
+        return None
+    ref = meta.get("referenceSystem")
+    if ref is None and isinstance(meta.get("crs"), dict) and "epsg" in meta["crs"]:  # CityJSON 0.x style
+        ref = f"EPSG:{meta['crs']['epsg']}"
+    return ref
+
+
+def _lod_key(lod) -> tuple:
+    """Numeric sort of LoD values ("1.2" < "1.3" < "2.2"; 2 == "2.0"); unparseable ones last."""
+    try:
+        return (float(lod), "")
+    except (TypeError, ValueError):
+        return (math.inf, str(lod))
+
+
+class _Walk:
+    """Collects every surface of every object, then triangulates them all at once."""
+
+    def __init__(self, path: Path, vertices: np.ndarray, templates) -> None:
+        self.path = path
+        self.vertices = vertices
+        self.extra: list[np.ndarray] = []  # placed template vertices, appended after ``vertices``
+        self.n_total = vertices.shape[0]
+        self.polygons: list = []  # polygons indexing ``vertices``
+        self.poly_slot: list[int] = []  # slot of each polygon in ``polygons``
+        self.instance_rings: list[tuple[Rings, int]] = []  # (rings with absolute indices, slot)
+        self.slots: list[tuple[int, str]] = []  # (object number, lod) per mesh level
+        self.slot_of: dict[tuple[int, tuple], int] = {}
+        self.geoms: list[tuple[str, int, int]] = []  # (object id, geometry number, polygons) for error reports
+        self.objects: list[dict] = []
+        self.templates = templates
+
+    def add_object(self, oid: str, obj) -> None:
+        if not isinstance(obj, dict):
+            raise SourceError(f"{self.path}: CityObject {oid!r} is not a JSON object")
+        geometries = obj.get("geometry") or []
+        if not isinstance(geometries, list):
+            raise SourceError(f"{self.path}: CityObject {oid!r}: 'geometry' is not a list")
+        kind = str(obj.get("type", ""))
+        parents = obj.get("parents") or []
+        info = {"id": oid, "type": kind, "cls": "terrain" if kind == "TINRelief" else kind.lstrip("+").lower(),
+                "parent": parents[0] if isinstance(parents, list) and parents else None,
+                "attributes": obj.get("attributes"), "notes": []}
+        number = len(self.objects)
+        self.objects.append(info)
+        for g, geom in enumerate(geometries):
+            self._add_geometry(oid, number, g, geom, info)
+
+    def _add_geometry(self, oid: str, number: int, g: int, geom, info: dict) -> None:
+        where = f"CityObject {oid!r} geometry #{g}"
+        if not isinstance(geom, dict):
+            raise SourceError(f"{self.path}: {where} is not a JSON object")
+        gtype = geom.get("type")
+        if gtype == "GeometryInstance":
+            self._add_instance(oid, number, g, geom, info)
+            return
+        if gtype in _NO_SURFACES:
+            info["notes"].append(f"geometry #{g} ({gtype}) has no surfaces; skipped")
+            return
+        if gtype not in _DEPTH:
+            raise SourceError(f"{self.path}: {where} has unknown type {gtype!r} "
+                              f"(known: {', '.join([*_DEPTH, *sorted(_NO_SURFACES), 'GeometryInstance'])})")
+        polys = self._surfaces(geom.get("boundaries"), _DEPTH[gtype], where)
+        slot = self._slot(number, geom.get("lod"))
+        self.polygons.extend(polys)
+        self.poly_slot.extend([slot] * len(polys))
+        self.geoms.append((oid, g, len(polys)))
+
+    def _surfaces(self, boundaries, depth: int, where: str) -> list:
+        """The polygons (lists of rings) under ``depth`` list levels of boundaries."""
+        level = boundaries
+        try:
+            if not isinstance(level, list):
+                raise TypeError
+            for _ in range(depth - 1):
+                level = [x for sub in level for x in sub]
+            if not all(isinstance(p, list) and all(isinstance(r, list) for r in p) for p in level):
+                raise TypeError
+        except TypeError:
+            raise SourceError(f"{self.path}: {where}: 'boundaries' are not nested {depth + 2} levels deep "
+                              f"as its type requires") from None
+        return [p for p in level if p]  # a polygon without rings has nothing to draw
+
+    def _slot(self, number: int, lod) -> int:
+        key = (number, _lod_key(lod))
+        if key not in self.slot_of:
+            self.slot_of[key] = len(self.slots)
+            self.slots.append((number, str(lod) if lod is not None else "?"))
+        return self.slot_of[key]
+
+    def _add_instance(self, oid: str, number: int, g: int, geom: dict, info: dict) -> None:
+        """A GeometryInstance: the template's surfaces, transformed and moved to the reference point."""
+        where = f"CityObject {oid!r} geometry #{g} (GeometryInstance)"
+        t = self.templates
+        if not (isinstance(t, dict) and isinstance(t.get("templates"), list)):
+            raise SourceError(f"{self.path}: {where} but the file has no 'geometry-templates'")
+        k = geom.get("template")
+        if not isinstance(k, int) or not 0 <= k < len(t["templates"]):
+            raise SourceError(f"{self.path}: {where}: template {k!r} out of range (0..{len(t['templates']) - 1})")
+        template = t["templates"][k]
+        ttype = template.get("type") if isinstance(template, dict) else None
+        if ttype in _NO_SURFACES:
+            info["notes"].append(f"geometry #{g} (instance of a {ttype}) has no surfaces; skipped")
+            return
+        if ttype not in _DEPTH:
+            raise SourceError(f"{self.path}: {where}: template {k} has unknown type {ttype!r}")
+        tv = _numeric_rows(self.path, "geometry-templates.vertices-templates", t.get("vertices-templates") or [])
+        ref = geom.get("boundaries")
+        if not (isinstance(ref, list) and len(ref) == 1 and isinstance(ref[0], int)
+                and 0 <= ref[0] < self.vertices.shape[0]):
+            raise SourceError(f"{self.path}: {where}: reference point {ref!r} is not one vertex index "
+                              f"in 0..{self.vertices.shape[0] - 1}")
+        matrix = geom.get("transformationMatrix", np.eye(4).ravel().tolist())
+        try:
+            m = np.asarray(matrix, np.float64).reshape(4, 4)
+        except (ValueError, TypeError):
+            raise SourceError(f"{self.path}: {where}: transformationMatrix is not 16 numbers") from None
+        try:
+            rings = flatten_polygons(self._surfaces(template.get("boundaries"), _DEPTH[ttype],
+                                                    f"{where}: template {k}"))
+        except ValueError as exc:
+            raise SourceError(f"{self.path}: {where}: template {k}: {exc}") from None
+        bad = (rings.index < 0) | (rings.index >= tv.shape[0])
+        if bad.any():
+            raise SourceError(f"{self.path}: {where}: template {k} vertex index {int(rings.index[bad][0])} "
+                              f"out of range (0..{tv.shape[0] - 1})")
+        placed = tv @ m[:3, :3].T + m[:3, 3] + self.vertices[ref[0]]
+        if not np.isfinite(placed).all():
+            raise SourceError(f"{self.path}: {where}: placed template vertices are not finite")
+        rings.index = rings.index + self.n_total
+        self.extra.append(placed)
+        self.n_total += placed.shape[0]
+        self.instance_rings.append((rings, self._slot(number, template.get("lod"))))
+        info["notes"].append(f"geometry #{g} is an instance of template {k}")
+
+    def build(self) -> list[SourceObject]:
+        rings = self._flatten()
+        vertices = np.concatenate([self.vertices, *self.extra]) if self.extra else self.vertices
+        poly_slot = np.asarray(self.poly_slot + [s for r, s in self.instance_rings for _ in range(r.n_polygons)],
+                               np.int64)
+        faces, owner = triangulate_rings(vertices, rings)
+        face_slot = poly_slot[owner]
+        order = np.argsort(face_slot, kind="stable")
+        faces, face_slot = faces[order], face_slot[order]
+        bounds = np.searchsorted(face_slot, np.arange(len(self.slots) + 1))
+        levels: dict[int, list[tuple[str, Mesh]]] = {}
+        for s, (number, lod) in enumerate(self.slots):
+            f = faces[bounds[s]:bounds[s + 1]]
+            if f.shape[0] == 0:
+                continue
+            used, inverse = np.unique(f, return_inverse=True)
+            levels.setdefault(number, []).append((lod, Mesh(vertices[used], inverse.reshape(-1, 3))))
+        out = []
+        for number, info in enumerate(self.objects):
+            if number not in levels:
+                continue
+            chain = sorted(levels[number], key=lambda lm: _lod_key(lm[0]))
+            attrs = {"id": info["id"], "type": info["type"], "lods": [lod for lod, _ in chain]}
+            if info["parent"] is not None:
+                attrs["parent"] = info["parent"]
+            if info["attributes"]:
+                attrs["attributes"] = info["attributes"]
+            if info["notes"]:
+                attrs["notes"] = info["notes"]
+            out.append(SourceObject(info["id"], info["cls"], [m for _, m in chain], attrs))
+        return out
+
+    def _flatten(self) -> Rings:
+        """All polygons as one Rings, every index checked against the vertex count."""
+        try:
+            rings = flatten_polygons(self.polygons)
+        except ValueError:
+            rings = None
+        n = self.vertices.shape[0]
+        if rings is None or (rings.index.size and (rings.index.min() < 0 or rings.index.max() >= n)):
+            self._locate_bad_index(n)
+        parts = [rings] + [r for r, _ in self.instance_rings]
+        return Rings(np.concatenate([p.index for p in parts]), np.concatenate([p.length for p in parts]),
+                     np.concatenate([p.outer for p in parts]))
+
+    def _locate_bad_index(self, n: int) -> None:
+        """Error path only: find the geometry holding the first bad vertex index and name it."""
+        first = 0
+        for oid, g, count in self.geoms:
+            polys = self.polygons[first:first + count]
+            first += count
+            try:
+                idx = flatten_polygons(polys).index
+            except ValueError as exc:
+                raise SourceError(f"{self.path}: CityObject {oid!r} geometry #{g}: {exc}") from None
+            bad = (idx < 0) | (idx >= n)
+            if bad.any():
+                raise SourceError(f"{self.path}: CityObject {oid!r} geometry #{g}: vertex index "
+                                  f"{int(idx[bad][0])} out of range (the file has {n} vertices)")
+        raise SourceError(f"{self.path}: bad vertex index in boundaries")

@@ -1,0 +1,109 @@
+"""What a scene store holds, as numbers a person or a script can read (``walkstream inspect``).
+
+Everything comes from the index arrays (no geometry is decoded), so a
+megacity store reports in the time its index takes to load.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .store import KINDS, TREES, SceneStore
+
+__all__ = ["inspect_store", "format_report"]
+
+
+def inspect_store(path: str | os.PathLike[str]) -> dict:
+    """A JSON-ready report: objects, representations, triangles and bytes per kind and level, depth."""
+    started = time.perf_counter()
+    with SceneStore.open(path) as store:
+        load = time.perf_counter() - started
+        idx = store.index
+    kinds = {}
+    for k, kind in enumerate(KINDS):
+        objs = np.nonzero(idx.object_kind == k)[0]
+        if objs.size == 0:
+            continue
+        reps = np.nonzero(np.isin(idx.rep_object, objs))[0]
+        level = idx.rep_level[reps]
+        size = "points" if k == TREES else "triangles"
+        per_level = [
+            {"level": int(lv), "representations": int((level == lv).sum()),
+             size: int(idx.rep_faces[reps][level == lv].sum() if k != TREES else idx.rep_vertices[reps][level == lv].sum()),
+             "vertices": int(idx.rep_vertices[reps][level == lv].sum()),
+             "bytes": int(idx.rep_bytes[reps][level == lv].sum()),
+             "max_error": float(idx.rep_error[reps][level == lv].max())}
+            for lv in np.unique(level)
+        ]
+        depth = idx.object_depth[objs]
+        entry = {
+            "objects": int(objs.size),
+            "representations": int(reps.size),
+            "bytes": int(idx.rep_bytes[reps].sum()),
+            "levels": per_level,
+            "hierarchy_depth": int(depth.max()) + 1 if objs.size else 0,
+            "morph_maps": int(idx.rep_morph[reps].sum()),
+        }
+        if k != TREES:
+            full = idx.rep_first[objs] + idx.rep_count[objs] - 1
+            entry["triangles_full_detail"] = int(idx.rep_faces[full].sum())
+        kinds[kind] = entry
+    classes = np.bincount(idx.object_class, minlength=len(idx.class_names))
+    full = idx.rep_first + idx.rep_count - 1
+    return {
+        "path": str(path),
+        "name": idx.name,
+        "schema_version": idx.meta.get("schema_version"),
+        "generator": idx.meta.get("generator"),
+        "seed": idx.meta.get("seed"),
+        "crs": idx.meta.get("crs"),
+        "origin": idx.meta.get("origin"),
+        "file_bytes": Path(path).stat().st_size,
+        "index_load_s": round(load, 4),
+        "bounds": idx.bounds.tolist(),
+        "objects": idx.n_objects,
+        "representations": idx.n_representations,
+        "triangles_full_detail": int(idx.rep_faces[full[idx.flat]].sum()),
+        "hierarchy_depth": idx.height,
+        "classes": {name: int(c) for name, c in zip(idx.class_names, classes)},
+        "kinds": kinds,
+        "tree_models": int(idx.model_points.shape[0]),
+        "tree_instances": int(idx.meta.get("tree_instances", 0)),
+        "tour_seconds": float(idx.tour[-1]["t"]) if idx.tour else 0.0,
+        "viewpoints": idx.meta.get("viewpoints") or {},
+    }
+
+
+def _n(x: float) -> str:
+    for unit, div in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
+        if abs(x) >= div:
+            return f"{x / div:.2f}{unit}"
+    return f"{x:.0f}"
+
+
+def format_report(r: dict) -> list[str]:
+    """The report as lines of text for a terminal."""
+    lines = [
+        f"{r['name']}  ({r['path']}, schema v{r['schema_version']}, {_n(r['file_bytes'])}B, "
+        f"index loads in {r['index_load_s'] * 1e3:.0f} ms)",
+        f"  {r['objects']} objects, {r['representations']} representations, "
+        f"{_n(r['triangles_full_detail'])} triangles at full detail, hierarchy depth {r['hierarchy_depth']}",
+        f"  crs {r['crs'] or '-'}, origin {r['origin']}, tour {r['tour_seconds']:.0f} s"
+        + (f", viewpoints {r['viewpoints']}" if r["viewpoints"] else ""),
+        "  classes: " + ", ".join(f"{k} {v}" for k, v in r["classes"].items()),
+    ]
+    for kind, e in r["kinds"].items():
+        lines.append(f"  {kind}: {e['objects']} objects, {e['representations']} reps, {_n(e['bytes'])}B, "
+                     f"depth {e['hierarchy_depth']}, {e['morph_maps']} morph maps")
+        for lv in e["levels"]:
+            size = lv.get("triangles", lv.get("points"))
+            what = "triangles" if "triangles" in lv else "points"
+            lines.append(f"    level {lv['level']}: {lv['representations']:6d} reps  {_n(size):>8} {what}  "
+                         f"{_n(lv['vertices']):>8} vertices  {_n(lv['bytes']):>8}B  max error {lv['max_error']:.3g}")
+    if r["tree_models"]:
+        lines.append(f"  tree models: {r['tree_models']}, tree instances: {r['tree_instances']}")
+    return lines
