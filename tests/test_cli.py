@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from server.scene.store import SceneStore
 
 
@@ -48,3 +50,17 @@ def test_demo_json_reports_the_loop(demo_store, tmp_path):
     assert figures["frames"] > 10 and figures["target_ms"] == 12.0 and figures["errors"] == 0
     assert Path(figures["chart"]).stat().st_size > 10_000  # a PNG with a plot in it
     assert "frames" in done.stderr and "c_vertex" in done.stderr  # the per-second lines
+
+
+def test_bench_build_reports_figures_against_its_reference(tmp_path):
+    done = _walkstream("bench", "build", "--scene", "auditorium", "--keep", str(tmp_path), "--json")
+    assert done.returncode == 0, done.stderr
+    figures = json.loads(done.stdout.strip().splitlines()[-1])
+    (scene,) = figures["scenes"]
+    assert scene["scene"] == "auditorium" and figures["reference_simplifier_tris_per_s"] > 0
+    with SceneStore.open(tmp_path / "auditorium.db") as store:
+        full = store.index.rep_first + store.index.rep_count - 1
+        assert scene["triangles"] == int(store.index.rep_faces[full].sum())
+    assert scene["store_bytes"] == (tmp_path / "auditorium.db").stat().st_size
+    assert scene["triangles_per_s"] == pytest.approx(scene["triangles"] / scene["build_s"], rel=0.01)
+    assert 0 < scene["index_load_s"] < 5 and scene["ratio_to_simplifier"] > 0

@@ -313,3 +313,15 @@ def test_replay_fallback_gives_the_same_property(monkeypatch) -> None:
     for k in range(1, len(chain)):
         assert morph_faces_match(chain, k)
         np.testing.assert_array_equal(chain.morph[k], expected.morph[k])
+
+
+def test_collapse_maps_exact_on_the_auditorium_chair() -> None:
+    """A regression: vertices whose survivor lost all its faces once went to different targets,
+    reopening flattened faces at weight 0 (the chair's 124 → 62 step)."""
+    from server.scene.generate.auditorium import auditorium
+
+    scene, _, _ = auditorium(seed=3)
+    chair = next(o for o in scene.objects if o.cls == "chair").levels[0]
+    chain = build_chain(chair.positions, chair.faces)
+    assert len(chain) >= 4
+    assert all(morph_faces_match(chain, k) for k in range(1, len(chain)))

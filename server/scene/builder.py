@@ -84,11 +84,19 @@ def _chain_job(args: tuple) -> tuple:
     if len(levels) == 1:
         chain = build_chain(levels[0][0], levels[0][1], min_saving=min_saving, morph=morph)
     else:
-        chain = chain_from_levels(levels, morph="nearest")
+        # The source's own LoDs are real data and stay, except a dominated one: a coarser LoD
+        # with no fewer faces than a finer one costs as much to draw and shows less (LoD 1.2
+        # and 1.3 are often the same box). ``min_saving`` rules levels we make, not these.
+        kept = [levels[-1]]
+        for p, f in reversed(levels[:-1]):
+            if len(f) < len(kept[-1][1]):
+                kept.append((p, f))
+        chain = chain_from_levels(kept[::-1], morph="nearest")
     lo, hi = object_box(chain.levels)
     blobs = [encode_geometry(p, f, lo, hi, reorder=False) for p, f in chain.levels]
-    morphs = [None] + [encode_morph(m, chain.levels[k - 1][0].shape[0]) for k, m in enumerate(chain.morph)
-                       if k > 0]
+    # morph[k] maps level k's vertices onto level k-1's; the coarsest level (and morph="none") has none.
+    morphs = [None if k == 0 or m is None else encode_morph(m, chain.levels[k - 1][0].shape[0])
+              for k, m in enumerate(chain.morph)]
     coarsest = chain.levels[0]
     return lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest
 
@@ -132,6 +140,22 @@ def scene_origin(source: SourceScene) -> np.ndarray:
     return origin
 
 
+def _subtree_boxes(parent: Sequence[int], lo: Sequence[np.ndarray], hi: Sequence[np.ndarray]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Each node's box grown to hold its subtree's, so culling a node culls everything under it.
+
+    A coarse terrain patch can lie below a finer child (its samples skip the peaks); parents come
+    before children (``parent[j] < j``).
+    """
+    lo, hi = np.array(lo, np.float64), np.array(hi, np.float64)
+    for j in range(len(parent) - 1, 0, -1):
+        p = parent[j]
+        if p >= 0:
+            lo[p] = np.minimum(lo[p], lo[j])
+            hi[p] = np.maximum(hi[p], hi[j])
+    return lo, hi
+
+
 def _is_building(cls: str) -> bool:
     return cls.lower() in _BUILDING_CLASSES
 
@@ -156,6 +180,7 @@ def build_store(
     """
     started = time.perf_counter()
     tick = progress or (lambda stage, done, total: None)
+    source.check()
     origin = scene_origin(source) if recentre else np.zeros(3)
     workers = options.workers or min(8, os.cpu_count() or 1)
     timings: dict[str, float] = {}
@@ -189,7 +214,9 @@ def build_store(
         lo = np.array([chains[i][0] for i in members])
         hi = np.array([chains[i][1] for i in members])
         proxies = [Mesh(*chains[i][5]) for i in members]
-        tree = build_hlod(lo, hi, proxies, progress=lambda d, t: tick("hlod", d, t))
+        coarse_error = np.array([chains[i][2][0] for i in members])
+        tree = build_hlod(lo, hi, proxies, object_error=coarse_error, workers=workers,
+                          progress=lambda d, t: tick("hlod", d, t))
     timings["hlod"] = time.perf_counter() - t0
 
     # 3. terrain quadtrees
@@ -245,14 +272,19 @@ def build_store(
 
         node_id: list[int] = []
         if tree is not None:
-            for j in range(len(tree.parent)):
+            n_nodes = len(tree.parent)
+            node_lo = [np.minimum(tree.lo[j], tree.proxies[j].positions.min(axis=0)) for j in range(n_nodes)]
+            node_hi = [np.maximum(tree.hi[j], tree.proxies[j].positions.max(axis=0)) for j in range(n_nodes)]
+            for m, node in zip(members, tree.object_parent):
+                node_lo[node] = np.minimum(node_lo[node], chains[m][0])
+                node_hi[node] = np.maximum(node_hi[node], chains[m][1])
+            node_lo, node_hi = _subtree_boxes(tree.parent, node_lo, node_hi)
+            for j in range(n_nodes):
                 p, f = tree.proxies[j].positions, tree.proxies[j].faces
-                lo, hi = np.asarray(tree.lo[j], np.float64), np.asarray(tree.hi[j], np.float64)
-                blob = encode_geometry(p, f, np.minimum(lo, p.min(axis=0)), np.maximum(hi, p.max(axis=0)))
+                blob = encode_geometry(p, f, p.min(axis=0), p.max(axis=0))
                 parent = -1 if tree.parent[j] < 0 else node_id[tree.parent[j]]
-                node_id.append(writer.add_encoded(f"hlod_{j}", "hlod", np.minimum(lo, p.min(axis=0)),
-                                                  np.maximum(hi, p.max(axis=0)), [float(tree.error[j])], [blob],
-                                                  kind=HLOD, parent=parent))
+                node_id.append(writer.add_encoded(f"hlod_{j}", "hlod", node_lo[j], node_hi[j],
+                                                  [float(tree.error[j])], [blob], kind=HLOD, parent=parent))
                 counts["hlod"] += 1
                 wrote()
         parent_of = np.full(len(objects), -1)
@@ -265,12 +297,15 @@ def build_store(
             wrote()
         for tname, t in terrains:
             ids: list[int] = []
-            for j in range(len(t.parent)):
-                p, f = t.mesh(j)
-                lo, hi = p.min(axis=0), p.max(axis=0)
+            patches = [t.mesh(j) for j in range(len(t.parent))]
+            box_lo, box_hi = _subtree_boxes(t.parent, [p.min(axis=0) for p, _ in patches],
+                                            [p.max(axis=0) for p, _ in patches])
+            for j, (p, f) in enumerate(patches):
                 parent = -1 if t.parent[j] < 0 else ids[t.parent[j]]
-                ids.append(writer.add_encoded(f"{tname}/patch_{j}", "terrain", lo, hi, [float(t.error[j])],
-                                              [encode_geometry(p, f, lo, hi)], kind=TERRAIN, parent=parent))
+                # the geometry is quantized in its own box; the object's box bounds its whole subtree
+                blob = encode_geometry(p, f, p.min(axis=0), p.max(axis=0))
+                ids.append(writer.add_encoded(f"{tname}/patch_{j}", "terrain", box_lo[j], box_hi[j],
+                                              [float(t.error[j])], [blob], kind=TERRAIN, parent=parent))
                 counts["terrain"] += 1
                 wrote()
         if groups is not None:

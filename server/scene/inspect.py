@@ -29,11 +29,15 @@ def inspect_store(path: str | os.PathLike[str]) -> dict:
         if objs.size == 0:
             continue
         reps = np.nonzero(np.isin(idx.rep_object, objs))[0]
-        level = idx.rep_level[reps]
+        depth = idx.object_depth[objs]
+        # A hierarchy node has one representation; its level is its depth in the tree.
+        by_depth = bool((idx.rep_count[objs] == 1).all() and np.ptp(depth) > 0)
+        level = (depth - depth.min())[np.searchsorted(objs, idx.rep_object[reps])] if by_depth else idx.rep_level[reps]
         size = "points" if k == TREES else "triangles"
+        amount = idx.rep_vertices[reps] if k == TREES else idx.rep_faces[reps]
         per_level = [
-            {"level": int(lv), "representations": int((level == lv).sum()),
-             size: int(idx.rep_faces[reps][level == lv].sum() if k != TREES else idx.rep_vertices[reps][level == lv].sum()),
+            {"depth" if by_depth else "level": int(lv), "representations": int((level == lv).sum()),
+             size: int(amount[level == lv].sum()),
              "vertices": int(idx.rep_vertices[reps][level == lv].sum()),
              "bytes": int(idx.rep_bytes[reps][level == lv].sum()),
              "max_error": float(idx.rep_error[reps][level == lv].max())}
@@ -102,7 +106,8 @@ def format_report(r: dict) -> list[str]:
         for lv in e["levels"]:
             size = lv.get("triangles", lv.get("points"))
             what = "triangles" if "triangles" in lv else "points"
-            lines.append(f"    level {lv['level']}: {lv['representations']:6d} reps  {_n(size):>8} {what}  "
+            row = f"depth {lv['depth']}" if "depth" in lv else f"level {lv['level']}"
+            lines.append(f"    {row}: {lv['representations']:6d} reps  {_n(size):>8} {what}  "
                          f"{_n(lv['vertices']):>8} vertices  {_n(lv['bytes']):>8}B  max error {lv['max_error']:.3g}")
     if r["tree_models"]:
         lines.append(f"  tree models: {r['tree_models']}, tree instances: {r['tree_instances']}")

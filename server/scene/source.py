@@ -108,3 +108,34 @@ class SourceScene:
     trees: TreeInstances | None = None
     crs: str | None = None
     sources: list[str] = field(default_factory=list)
+
+    def check(self) -> None:
+        """Raise ``SourceError`` naming the first object, grid or tree the builder could not use.
+
+        Importers check their files; this catches what a generator or an API caller hands
+        over (a NaN vertex, an index past the end), before any work is spent on it.
+        """
+        for obj in self.objects:
+            for k, m in enumerate(obj.levels):
+                where = f"object {obj.name!r} level {k}"
+                if not np.isfinite(m.positions).all():
+                    raise SourceError(f"{where}: a vertex position is not a finite number")
+                if m.n_faces and (m.faces.min() < 0 or m.faces.max() >= m.n_vertices):
+                    raise SourceError(f"{where}: a face index lies outside 0..{m.n_vertices - 1}")
+        for g in self.grids:
+            if g.heights.ndim != 2 or min(g.heights.shape) < 2 or not np.isfinite(g.heights).any():
+                raise SourceError(f"height grid {g.name!r}: needs at least 2 × 2 samples, some of them finite")
+            if not (np.isfinite(g.spacing).all() and min(g.spacing) > 0 and np.isfinite(g.origin).all()):
+                raise SourceError(f"height grid {g.name!r}: origin {g.origin} / spacing {g.spacing} not finite and > 0")
+        for t in self.tree_models:
+            if not np.isfinite(t.mesh.positions).all() or t.mesh.n_faces == 0:
+                raise SourceError(f"tree model {t.name!r}: needs faces and finite vertices")
+        if self.trees is not None and len(self.trees):
+            bad = np.nonzero(~np.isfinite(self.trees.matrix).all(axis=(1, 2)))[0]
+            if bad.size:
+                name = self.trees.names[bad[0]] if len(self.trees.names) > bad[0] else f"#{bad[0]}"
+                raise SourceError(f"tree {name}: its matrix is not finite ({bad.size} trees like it)")
+            m = self.trees.model
+            if m.min() < 0 or m.max() >= len(self.tree_models):
+                raise SourceError(f"tree instances refer to model {int(m.max())}, "
+                                  f"but the scene has {len(self.tree_models)} tree models")

@@ -514,7 +514,8 @@ class SceneWriter:
         are read from triangle payloads (``proto.geometry``), so they are what
         the client will draw; other payloads (a tree group's instance list)
         pass ``counts`` as (vertices, faces) per level.
-        lo, hi : (3,) float — the object's box (``object_box``), the one its payloads are quantized in
+        lo, hi : (3,) float — the object's box: it bounds the object's payloads and, in a hierarchy,
+                 its whole subtree (so culling a node culls its descendants)
         kind   : one of ``MESH, HLOD, TERRAIN, TREES``
         parent : an object already added (its id), or −1
         morphs : per level, None or an encoded ``proto.morph`` map onto the previous level

@@ -1,0 +1,370 @@
+"""Every named scene and every kind of user file, built into a real store and read back as a client would."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from proto.geometry import decode_geometry
+from proto.morph import decode_morph
+from proto.points import decode_instances, decode_points
+from server.scene.builder import BuildOptions, build_store
+from server.scene.catalog import build_named, build_path
+from server.scene.data import data_file
+from server.scene.importers import load_source
+from server.scene.inspect import inspect_store
+from server.scene.source import SourceError
+from server.scene.store import HLOD, KINDS, MESH, TERRAIN, TREES, SceneStore
+
+
+# --------------------------------------------------------------------------- what every store must satisfy
+
+
+def _rotated(faces: np.ndarray) -> np.ndarray:
+    """Each triangle with its smallest index first, orientation kept."""
+    k = np.argmin(faces, axis=1)
+    return np.stack([faces[np.arange(len(faces)), (k + i) % 3] for i in range(3)], axis=1)
+
+
+def check_chains(store: SceneStore, objects: np.ndarray, *, exact: bool = True) -> None:
+    """Levels monotonic; every vertex of a finer level maps to a vertex of the next coarser one, and
+    (``exact``: collapse maps) the geomorph at weight 0 reproduces the coarser surface triangle for triangle."""
+    idx = store.index
+    for o in objects:
+        first, count = int(idx.rep_first[o]), int(idx.rep_count[o])
+        reps = np.arange(first, first + count)
+        assert (np.diff(idx.rep_faces[reps]) > 0).all(), f"object {o}: faces must grow toward full detail"
+        assert (np.diff(idx.rep_error[reps]) <= 1e-6).all() and idx.rep_error[reps[-1]] == 0.0
+        geoms = [decode_geometry(b) for b in store.geometries(reps.tolist())]
+        assert [g.faces for g in geoms] == idx.rep_faces[reps].tolist()
+        assert not idx.rep_morph[reps[0]] and idx.rep_morph[reps[1:]].all()
+        for k in range(1, count):
+            fine, coarse = geoms[k], geoms[k - 1]
+            m = decode_morph(store.morph(int(reps[k])), fine.vertices, coarse.vertices)
+            assert m.shape == (fine.vertices,) and (m < coarse.vertices).all()
+            if not exact:
+                continue
+            # weight 0 puts every fine vertex on its target: the fine mesh collapses onto the coarse one
+            tris = m[fine.indices]
+            tris = tris[(tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])]
+            np.testing.assert_array_equal(np.unique(_rotated(tris), axis=0),
+                                          np.unique(_rotated(coarse.indices), axis=0),
+                                          err_msg=f"object {o} level {k}")
+
+
+def check_hierarchy(idx, kind: int) -> None:
+    """Every object of ``kind`` lies under exactly one root-to-leaf path; children inside their parent."""
+    objs = np.nonzero(idx.object_kind == kind)[0]
+    assert objs.size
+    parent = idx.object_parent
+    assert (parent < np.arange(idx.n_objects)).all()
+    # walk each object up to its root: one path, one root per hierarchy
+    roots = set()
+    for o in objs:
+        path = [int(o)]
+        while parent[path[-1]] >= 0:
+            path.append(int(parent[path[-1]]))
+            assert len(path) <= idx.height
+        roots.add(path[-1])
+    assert len(roots) == 1, f"{KINDS[kind]} has {len(roots)} roots"
+    # CSR children are the inverse of parent
+    for o in objs[:400]:
+        for c in idx.children(int(o)):
+            assert parent[c] == o
+    inner = parent[parent >= 0]
+    slack = 1e-3 * float(np.abs(idx.bounds).max() + 1)
+    children = np.nonzero(parent >= 0)[0]
+    assert (idx.object_lo[children] >= idx.object_lo[inner] - slack).all()
+    assert (idx.object_hi[children] <= idx.object_hi[inner] + slack).all()
+
+
+def check_tour(idx) -> None:
+    assert len(idx.tour) >= 2
+    times = [k["t"] for k in idx.tour]
+    assert times == sorted(times)
+    lo, hi = idx.bounds
+    span = float(np.max(hi - lo))
+    for key in idx.tour:
+        assert np.linalg.norm(key["forward"]) == pytest.approx(1, abs=1e-3)
+        assert np.linalg.norm(np.asarray(key["eye"]) - (lo + hi) / 2) < 4 * span
+
+
+# --------------------------------------------------------------------------- named scenes
+
+
+@pytest.fixture(scope="module")
+def auditorium(tmp_path_factory):
+    path = tmp_path_factory.mktemp("aud") / "auditorium.db"
+    summary = build_named("auditorium", path, seed=3)
+    return path, summary
+
+
+def test_auditorium_is_funkhouser_and_sequins_test(auditorium) -> None:
+    path, summary = auditorium
+    with SceneStore.open(path) as store:
+        idx = store.index
+        chairs = np.nonzero(idx.object_class == idx.class_names.index("chair"))[0]
+        assert chairs.size >= 400 and (idx.rep_count[chairs] >= 4).all()
+        assert summary["triangles"] >= 100_000
+        full = idx.rep_first + idx.rep_count - 1
+        assert int(idx.rep_faces[full].sum()) == summary["triangles"]
+        vp = idx.meta["viewpoints"]
+        assert set(vp) == {"A", "B", "C"} and all(0 < t < idx.tour[-1]["t"] for t in vp.values())
+        check_tour(idx)
+        check_chains(store, chairs[:5])
+        check_chains(store, np.nonzero(idx.object_class != idx.class_names.index("chair"))[0][:10])
+
+
+def test_auditorium_is_deterministic(auditorium, tmp_path) -> None:
+    path, _ = auditorium
+    again = tmp_path / "again.db"
+    build_named("auditorium", again, seed=3)
+    with SceneStore.open(path) as a, SceneStore.open(again) as b:
+        np.testing.assert_array_equal(a.index.rep_faces, b.index.rep_faces)
+        np.testing.assert_array_equal(a.index.object_lo, b.index.object_lo)
+        assert a.index.tour == b.index.tour
+        reps = list(range(0, a.index.n_representations, 97))
+        assert a.geometries(reps) == b.geometries(reps)
+
+
+def test_denhaag_buildings_hlod_terrain_and_trees(tmp_path) -> None:
+    path = tmp_path / "denhaag.db"
+    summary = build_named("denhaag", path, seed=0, size=400)
+    with SceneStore.open(path) as store:
+        idx = store.index
+        assert idx.meta["crs"] == "EPSG:7415" and idx.meta["origin"][0] > 70_000
+        names = idx.class_names
+        buildings = np.isin(idx.object_class, [names.index(c) for c in ("building", "buildingpart")])
+        assert buildings.sum() >= 1_900
+        assert (idx.object_kind[buildings] == MESH).all()
+        # HLOD: one root over the whole city, every building under exactly one path from it
+        check_hierarchy(idx, HLOD)
+        root = int(np.nonzero((idx.object_kind == HLOD) & (idx.object_parent < 0))[0][0])
+        under = idx.object_parent[buildings]
+        assert (idx.object_kind[under] == HLOD).all()
+        lo, hi = idx.object_lo[buildings].min(axis=0), idx.object_hi[buildings].max(axis=0)
+        assert (idx.object_lo[root] <= lo + 1e-3).all() and (idx.object_hi[root] >= hi - 1e-3).all()
+        # the TIN is a mesh object of class terrain
+        terrain = np.nonzero(idx.object_class == names.index("terrain"))[0]
+        assert terrain.size == 1 and idx.rep_faces[idx.rep_first[terrain[0]] + idx.rep_count[terrain[0]] - 1] > 5000
+        check_chains(store, np.nonzero(buildings)[0][::150])
+        check_chains(store, terrain)
+        # trees on open ground: none stands on a roof
+        groups = np.nonzero(idx.object_kind == TREES)[0]
+        inst = [decode_instances(b) for b in store.geometries(idx.rep_first[groups].tolist())]
+        assert sum(len(i) for i in inst) == idx.meta["tree_instances"] == summary["tree_instances"] == 400
+        assert max(len(i) for i in inst) <= 64
+        xy = np.concatenate([i.matrix[:, :2, 3] for i in inst])
+        roofs = _footprints(store, np.nonzero(buildings)[0])
+        assert not _inside_triangles(xy, roofs).any()
+
+
+def _footprints(store: SceneStore, objects: np.ndarray) -> np.ndarray:
+    idx = store.index
+    full = (idx.rep_first[objects] + idx.rep_count[objects] - 1).tolist()
+    tris = []
+    for g in map(decode_geometry, store.geometries(full)):
+        tris.append(g.positions[g.indices][:, :, :2])
+    return np.concatenate(tris).astype(np.float64)
+
+
+def _inside_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(k,) bool: point strictly inside any (non-degenerate) triangle's xy projection."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    keep = np.abs(area) > 1e-2
+    a, b, c, area = a[keep], b[keep], c[keep], area[keep]
+    inside = np.zeros(len(p), bool)
+    for s in range(0, len(p), 64):
+        q = p[s : s + 64, None, :]
+        w0 = ((b[:, 0] - q[..., 0]) * (c[:, 1] - q[..., 1]) - (b[:, 1] - q[..., 1]) * (c[:, 0] - q[..., 0])) / area
+        w1 = ((c[:, 0] - q[..., 0]) * (a[:, 1] - q[..., 1]) - (c[:, 1] - q[..., 1]) * (a[:, 0] - q[..., 0])) / area
+        w2 = 1 - w0 - w1
+        inside[s : s + 64] = ((w0 > 1e-3) & (w1 > 1e-3) & (w2 > 1e-3)).any(axis=1)
+    return inside
+
+
+def test_sthelens_terrain_quadtree_under_a_forest(tmp_path) -> None:
+    path = tmp_path / "sthelens.db"
+    summary = build_named("sthelens", path, seed=1)
+    with SceneStore.open(path) as store:
+        idx = store.index
+        assert summary["tree_instances"] >= 100_000 and idx.meta["tree_instances"] == summary["tree_instances"]
+        check_hierarchy(idx, TERRAIN)
+        terrain = np.nonzero(idx.object_kind == TERRAIN)[0]
+        assert (idx.rep_count[terrain] == 1).all()
+        # coarser nodes carry larger errors than their children
+        child = terrain[idx.object_parent[terrain] >= 0]
+        err = idx.rep_error[idx.rep_first]
+        assert (err[idx.object_parent[child]] >= err[child]).all()
+        # the finest patches cover the DEM: 466 × 327 samples at 30 m
+        leaves = terrain[idx.leaf[terrain]]
+        ext = idx.object_hi[leaves].max(axis=0) - idx.object_lo[leaves].min(axis=0)
+        assert ext[0] == pytest.approx(326 * 30, rel=0.01) and ext[1] == pytest.approx(465 * 30, rel=0.01)
+        # every tree once, ≤ 64 per group, each group's trees inside its box, on the ground
+        groups = np.nonzero(idx.object_kind == TREES)[0]
+        models = [decode_points(b) for b in store.model_geometries(range(len(idx.model_points)))]
+        assert len(models) == len(idx.model_points) and all(len(m.positions) >= 1024 for m in models)
+        seen = 0
+        for g, blob in zip(groups, store.geometries(idx.rep_first[groups].tolist())):
+            inst = decode_instances(blob, models=len(models))
+            assert 1 <= len(inst) <= 64
+            root = inst.matrix[:, :3, 3]
+            assert (root >= idx.object_lo[g] - 1e-2).all() and (root <= idx.object_hi[g] + 1e-2).all()
+            seen += len(inst)
+        assert seen == summary["tree_instances"]
+        check_tour(idx)
+
+
+def test_megacity_small_has_one_hlod_root(tmp_path) -> None:
+    path = tmp_path / "mc.db"
+    summary = build_named("megacity", path, seed=2, size=300)
+    with SceneStore.open(path) as store:
+        idx = store.index
+        meshes = np.nonzero(idx.object_kind == MESH)[0]
+        assert meshes.size >= 300  # buildings and the ground
+        check_hierarchy(idx, HLOD)
+        check_chains(store, meshes[::40])
+        # an HLOD proxy never has more faces than everything under it
+        hl = np.nonzero(idx.object_kind == HLOD)[0]
+        below = np.zeros(idx.n_objects)
+        coarse = idx.rep_faces[idx.rep_first].astype(float)
+        for o in reversed(range(idx.n_objects)):
+            p = idx.object_parent[o]
+            if p >= 0:
+                below[p] += coarse[o] if idx.object_kind[o] == MESH else below[o]
+        assert (idx.rep_faces[idx.rep_first[hl]] <= np.maximum(below[hl], 12)).all()
+        assert summary["hierarchy_depth"] >= 3
+
+
+# --------------------------------------------------------------------------- user files
+
+
+def _two_meshes(tmp_path: Path, suffix: str) -> Path:
+    a = trimesh.creation.icosphere(subdivisions=4, radius=2.0)
+    b = trimesh.creation.box(extents=(3, 1, 2))
+    b.apply_translation((6, 0, 0))
+    path = tmp_path / f"pair{suffix}"
+    if suffix in (".glb", ".gltf"):
+        trimesh.Scene({"sphere": a, "box": b}).export(path)
+    else:
+        trimesh.util.concatenate([a, b]).export(path)
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".glb", ".obj", ".ply"])
+def test_user_mesh_files_build(tmp_path, suffix) -> None:
+    src = _two_meshes(tmp_path, suffix)
+    out = tmp_path / "user.db"
+    summary = build_path(src, out)
+    with SceneStore.open(out) as store:
+        idx = store.index
+        assert idx.n_objects == (2 if suffix == ".glb" else 1) == summary["objects"]["mesh"]
+        assert summary["triangles"] == 5120 + 12  # icosphere(4) and a box
+        check_chains(store, np.arange(idx.n_objects))
+        check_tour(idx)
+
+
+def test_multi_lod_cityjson_keeps_the_source_chain(tmp_path) -> None:
+    out = tmp_path / "multi.db"
+    build_path(data_file("city/multi_lod.city.json"), out)
+    source = load_source(data_file("city/multi_lod.city.json"))
+    with SceneStore.open(out) as store:
+        idx = store.index
+        multi = [o for o in source.objects if len(o.levels) >= 3]
+        assert len(multi) == 10
+        names = store.object_names()
+        chains = []
+        for o in multi:
+            # every LoD kept but a dominated one (no fewer faces than a finer LoD)
+            i = names.index(o.name)
+            reps = slice(idx.rep_first[i], idx.rep_first[i] + idx.rep_count[i])
+            assert idx.rep_faces[reps].tolist() == sorted({m.n_faces for m in o.levels})
+            chains.append(int(idx.rep_count[i]))
+        assert chains.count(3) >= 4 and chains.count(2) >= 3
+        check_chains(store, np.arange(idx.n_objects), exact=False)
+
+
+def test_height_grid_and_citygml_trees_build(tmp_path) -> None:
+    from matplotlib import cbook
+
+    out = tmp_path / "jacksboro.db"
+    build_path(cbook.get_sample_data("jacksboro_fault_dem.npz", asfileobj=False), out)
+    with SceneStore.open(out) as store:
+        check_hierarchy(store.index, TERRAIN)
+        assert store.index.height >= 4
+    out = tmp_path / "berlin.db"
+    summary = build_path(data_file("trees/berlin_trees.gml"), out)
+    assert summary["tree_instances"] == 288
+    with SceneStore.open(out) as store:
+        assert len(store.index.model_points) == 10
+        assert store.index.meta["crs"] and "25833" in store.index.meta["crs"]
+
+
+def test_a_broken_file_leaves_no_store(tmp_path) -> None:
+    text = data_file("city/multi_lod.city.json").read_text()
+    broken = tmp_path / "broken.city.json"
+    broken.write_text(text[: len(text) // 2])
+    out = tmp_path / "never.db"
+    with pytest.raises(Exception) as err:
+        build_path(broken, out)
+    assert "broken.city.json" in str(err.value)
+    assert list(tmp_path.iterdir()) == [broken]
+
+
+def test_bad_source_is_named_and_leaves_no_store(tmp_path) -> None:
+    source = load_source(data_file("trees/berlin_trees.gml"))
+    source.trees.matrix[5, 0, 3] = np.nan
+    out = tmp_path / "nan.db"
+    with pytest.raises(SourceError, match=f"tree {source.trees.names[5]}: its matrix is not finite"):
+        build_store(out, source, options=BuildOptions(workers=1))
+    source = load_source(data_file("city/multi_lod.city.json"))
+    source.objects[3].levels[1].faces[0, 0] = 10**6
+    with pytest.raises(SourceError, match=f"object '{source.objects[3].name}' level 1: a face index"):
+        build_store(out, source, options=BuildOptions(workers=1))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failure_while_writing_leaves_no_store(tmp_path, monkeypatch) -> None:
+    """A build that fails after the writer has written objects leaves no store and no temporary file."""
+    import server.scene.builder as builder
+
+    real = builder.encode_geometry
+    calls = {"n": 0}
+
+    def fail_late(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 40:
+            raise OSError("disk full")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(builder, "encode_geometry", fail_late)
+    out = tmp_path / "late.db"
+    with pytest.raises(OSError, match="disk full"):
+        build_named("sthelens", out, seed=0, size=2000)
+    assert calls["n"] == 40 and list(tmp_path.iterdir()) == []
+
+
+def test_cli_builds_a_path_and_inspects_it(tmp_path) -> None:
+    src = _two_meshes(tmp_path, ".glb")
+    out = tmp_path / "cli.db"
+    run = [sys.executable, "-m", "bench.cli"]
+    done = subprocess.run([*run, "build", str(src), "-o", str(out), "-q"], capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stderr
+    done = subprocess.run([*run, "inspect", str(out), "--json"], capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report == {**inspect_store(out), "index_load_s": report["index_load_s"]}
+    mesh = report["kinds"]["mesh"]
+    assert mesh["objects"] == 2 and report["schema_version"] == 2
+    assert sum(lv["triangles"] for lv in mesh["levels"]) == int(SceneStore.open(out).index.rep_faces.sum())
+    done = subprocess.run([*run, "inspect", str(out)], capture_output=True, text=True, timeout=240)
+    assert "mesh: 2 objects" in done.stdout and "level 0" in done.stdout
+    done = subprocess.run([*run, "inspect", str(tmp_path / "nope.db")], capture_output=True, text=True, timeout=240)
+    assert done.returncode == 2 and "nope.db" in done.stderr
