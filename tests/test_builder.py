@@ -368,3 +368,34 @@ def test_cli_builds_a_path_and_inspects_it(tmp_path) -> None:
     assert "mesh: 2 objects" in done.stdout and "level 0" in done.stdout
     done = subprocess.run([*run, "inspect", str(tmp_path / "nope.db")], capture_output=True, text=True, timeout=240)
     assert done.returncode == 2 and "nope.db" in done.stderr
+
+
+def test_sthelens_at_the_papers_grid_scale_keeps_its_extent(tmp_path) -> None:
+    """--grid resamples the DEM (ZMK use 2049²); small here: same extent, heights within the DEM's range."""
+    from server.scene.catalog import resample_grid
+    from server.scene.importers.dem import load_dem
+
+    dem = load_dem(data_file("terrain/SainteHelens.dem")).grids[0]
+    fine = resample_grid(dem, 257)
+    assert fine.heights.shape == (257, 257)
+    rows, cols = dem.heights.shape
+    assert fine.spacing[0] * 256 == pytest.approx(dem.spacing[0] * (cols - 1))
+    assert fine.spacing[1] * 256 == pytest.approx(dem.spacing[1] * (rows - 1))
+    # the same surface: against the DEM interpolated linearly at the fine samples' positions
+    from scipy.interpolate import RegularGridInterpolator
+
+    ys, xs = np.arange(rows) * dem.spacing[1], np.arange(cols) * dem.spacing[0]
+    at = np.stack(np.meshgrid(np.arange(257) * fine.spacing[1], np.arange(257) * fine.spacing[0], indexing="ij"), -1)
+    linear = RegularGridInterpolator((ys, xs), dem.heights)(np.minimum(at, [ys[-1], xs[-1]]))
+    both = np.isfinite(linear) & np.isfinite(fine.heights)
+    diff = np.abs(linear[both] - fine.heights[both])
+    assert both.mean() > 0.8 and np.median(diff) < 2.0 and np.percentile(diff, 99) < 40.0
+    assert np.nanmax(fine.heights) <= np.nanmax(dem.heights) + 50 and np.isnan(fine.heights).mean() < 0.2
+    out = tmp_path / "fine.db"
+    build_named("sthelens", out, size=1000, grid=257)
+    with SceneStore.open(out) as store:
+        idx = store.index
+        terrain = np.nonzero(idx.object_kind == TERRAIN)[0]
+        assert (idx.leaf[terrain]).sum() == (256 // 32) ** 2 and idx.meta["tree_instances"] == 1000
+    with pytest.raises(ValueError, match="sthelens"):
+        build_named("megacity", tmp_path / "x.db", grid=257)

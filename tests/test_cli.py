@@ -32,6 +32,9 @@ def test_bad_arguments_fail_with_a_clear_message(tmp_path):
     said = " ".join(done.stderr.replace("│", " ").split())  # rich wraps the message in a box
     assert done.returncode == 2 and "'moon' is neither a named scene" in said and "auditorium" in said
     assert not (tmp_path / "x.db").exists()
+    done = _walkstream("build", "megacity", "--grid", "2049", "-o", str(tmp_path / "x.db"))
+    said = " ".join(done.stderr.replace("│", " ").split())
+    assert done.returncode == 2 and "--grid" in said and "sthelens" in said and not (tmp_path / "x.db").exists()
     done = _walkstream("serve", str(tmp_path / "missing.db"))
     assert done.returncode == 2 and "no such store" in done.stderr
     not_a_store = tmp_path / "text.db"

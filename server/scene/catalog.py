@@ -23,7 +23,7 @@ import numpy as np
 
 from .builder import BuildOptions, Progress, build_store
 from .data import data_file
-from .source import SourceScene, TreeInstances
+from .source import HeightGrid, SourceScene, TreeInstances
 
 __all__ = ["SCENES", "build_named", "build_path", "is_named"]
 
@@ -115,11 +115,36 @@ def _inside_any(xy: np.ndarray, scene: SourceScene, terrain: list) -> np.ndarray
     return inside
 
 
-def _sthelens(seed: int, size: int | None, progress: Progress) -> tuple:
+def resample_grid(grid: HeightGrid, n: int) -> HeightGrid:
+    """The grid resampled to n × n samples over the same extent (cubic; voids stay voids).
+
+    ZMK 2002 measure on a 2049² height field; the St. Helens DEM has 466 × 327. The
+    extra samples are interpolated, not measured: this gives the paper's scale (patch
+    count, triangles, build time), not more real detail.
+    """
+    from scipy import ndimage
+
+    h = grid.heights
+    rows, cols = h.shape
+    void = ~np.isfinite(h)
+    if void.any():  # fill voids from the nearest sample, so the spline does not smear NaN
+        near = ndimage.distance_transform_edt(void, return_distances=False, return_indices=True)
+        h = h[tuple(near)]
+    zoom = ((n - 1) / (rows - 1), (n - 1) / (cols - 1))
+    fine = ndimage.zoom(h, zoom, order=3, mode="nearest", grid_mode=False)[:n, :n]
+    if void.any():
+        fine[ndimage.zoom(void.astype(np.uint8), zoom, order=0, grid_mode=False)[:n, :n].astype(bool)] = np.nan
+    spacing = (grid.spacing[0] * (cols - 1) / (n - 1), grid.spacing[1] * (rows - 1) / (n - 1))
+    return HeightGrid(grid.name, fine, grid.origin, spacing, {**grid.attributes, "resampled_from": [rows, cols]})
+
+
+def _sthelens(seed: int, size: int | None, progress: Progress, grid: int | None = None) -> tuple:
     from .importers.dem import load_dem
     from .vegetation import conifer, forest
 
     scene = load_dem(data_file("terrain/SainteHelens.dem"))
+    if grid is not None:
+        scene.grids = [resample_grid(scene.grids[0], grid)]
     models = [conifer(seed + i) for i in range(6)]
     scene.tree_models = models
     scene.trees = forest(scene.grids[0], size or 120_000, seed, len(models))
@@ -139,8 +164,11 @@ def is_named(name: str) -> bool:
 
 
 def build_named(name: str, path: str | os.PathLike[str], *, seed: int = 0, size: int | None = None,
-                workers: int | None = None, progress: Progress | None = None) -> dict:
-    """Build the named scene into ``path``; ``size`` scales it (buildings, trees) where that makes sense."""
+                grid: int | None = None, workers: int | None = None, progress: Progress | None = None) -> dict:
+    """Build the named scene into ``path``; ``size`` scales it (buildings, trees) where that makes sense,
+    ``grid`` resamples a height-field scene's DEM to grid × grid samples (``sthelens`` only)."""
+    if grid is not None and (name != "sthelens" or not 2 <= grid <= 8193):
+        raise ValueError(f"--grid resamples the sthelens DEM to 2..8193 samples a side; got {grid} for {name!r}")
     tick = progress or (lambda stage, done, total: None)
     if name == "demo":
         from .build import build_demo
@@ -150,7 +178,7 @@ def build_named(name: str, path: str | os.PathLike[str], *, seed: int = 0, size:
     if name not in SCENES:
         raise KeyError(f"unknown scene {name!r}; named scenes: demo, {', '.join(SCENES)}")
     recipe = SCENES[name]
-    source, tour, viewpoints = recipe.make(seed, size, tick)
+    source, tour, viewpoints = recipe.make(seed, size, tick, **({"grid": grid} if grid else {}))
     options = replace(recipe.options, workers=workers) if workers else recipe.options
     return build_store(path, source, name=name, tour=tour, viewpoints=viewpoints, seed=seed,
                        generator=f"walkstream build {name}", options=options, progress=tick)
