@@ -1,26 +1,279 @@
-"""Benefit of drawing an object at a level: Size · Accuracy (Funkhouser & Séquin 1993, section 4).
+"""Benefit of drawing an object tuple (Funkhouser & Séquin 1993, section 5; Zach 2002, 4.2).
 
-The skeleton uses the two factors that matter most: the pixels an object covers
-and the accuracy of the level, 1 − BaseError / Samples^m with Samples the
-level's polygon count (flat shading, m = 1). Later factors (importance, focus,
-motion, hysteresis) multiply in.
+Benefit(O, L, R) = Size(O) · Accuracy(O, L, R) · Importance(O) · Focus(O) · Motion(O) · Hysteresis(O, L, R).
+
+Size is the pixels the object covers; every other factor is a multiplier in
+(0, 1] that can only take benefit away (F&S keep them in [0, 1]; here they
+never reach 0, so a drawn object is always worth something and values stay
+finite). Accuracy is F&S's 1 − BaseError / Samples^m, with Samples and m set
+by the rendering algorithm, or Zach's face-density ratio. Everything is arrays
+over all candidate tuples at once: (n,) per object, (n, K) per option, where
+option k is level k // R with algorithm k % R (see ``solvers.candidates``).
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass, field, fields
+
 import numpy as np
 
-__all__ = ["BASE_ERROR", "accuracy", "benefit"]
+__all__ = [
+    "BASE_ERROR",
+    "ALGORITHMS",
+    "ALGORITHM_EXPONENT",
+    "ALGORITHM_SAMPLES",
+    "MIN_FACTOR",
+    "accuracy",
+    "algorithm_accuracy",
+    "zach_accuracy",
+    "importance",
+    "importance_table",
+    "focus",
+    "motion",
+    "hysteresis",
+    "BenefitFactors",
+    "benefit_matrix",
+    "benefit",
+]
 
 BASE_ERROR = 0.5
 
+#: Rendering algorithms, cheapest first; option k uses ALGORITHMS[k % R].
+ALGORITHMS = ("flat", "lit", "textured")
+
+#: F&S's exponent m per interpolation method: flat = 1, Gouraud = 2. Textured
+#: surfaces are Gouraud-lit here, so they interpolate like "lit".
+ALGORITHM_EXPONENT = {"flat": 1.0, "lit": 2.0, "textured": 2.0}
+
+#: What F&S count as Samples(L, R): polygons for flat shading, vertices for
+#: Gouraud (lit, textured); never more than the pixels covered.
+ALGORITHM_SAMPLES = {"flat": "faces", "lit": "vertices", "textured": "vertices"}
+
+#: The floor of every qualitative factor: a multiplier in (0, 1] never reaches 0.
+MIN_FACTOR = 1e-3
+
+
+# ----------------------------------------------------------------------------- accuracy
+
 
 def accuracy(samples: np.ndarray, m: float = 1.0) -> np.ndarray:
-    """(k,) float64 in [0.5, 1): 1 − 0.5 / samples^m; more samples, diminishing returns."""
+    """float64 in [0.5, 1): 1 − 0.5 / samples^m; more samples, diminishing returns (shape follows input)."""
     samples = np.maximum(np.asarray(samples, np.float64), 1.0)
     return 1.0 - BASE_ERROR / samples**m
 
 
+def algorithm_accuracy(
+    size: np.ndarray,
+    faces: np.ndarray,
+    vertices: np.ndarray | None = None,
+    algorithms: int = 1,
+    exponent: dict[str, float] | None = None,
+    names: tuple[str, ...] = ALGORITHMS,
+) -> np.ndarray:
+    """(n, K) F&S accuracy of each tuple, Samples and m chosen by the option's rendering algorithm.
+
+    size : (n,) pixels covered — caps Samples ("never more than #pixels")
+    faces, vertices : (n, K) polygons / vertices of each option's level (vertices None: use faces)
+    algorithms : R; option k is drawn with ``names[k % R]``
+    """
+    exponent = ALGORITHM_EXPONENT if exponent is None else exponent
+    faces = np.asarray(faces, np.float64)
+    verts = faces if vertices is None else np.broadcast_to(np.asarray(vertices, np.float64), faces.shape)
+    k = faces.shape[-1]
+    alg = np.arange(k) % algorithms
+    per_vertex = np.array([ALGORITHM_SAMPLES.get(names[r], "faces") == "vertices" for r in range(algorithms)])
+    m = np.array([float(exponent[names[r]]) for r in range(algorithms)])
+    samples = np.where(per_vertex[alg], verts, faces)
+    pixels = np.asarray(size, np.float64)
+    if pixels.ndim == faces.ndim - 1:
+        pixels = pixels[..., None]
+    samples = np.minimum(samples, np.maximum(pixels, 1.0))
+    return accuracy(samples, m[alg])
+
+
+def zach_accuracy(screen_size: np.ndarray, faces: np.ndarray, original_faces: np.ndarray) -> np.ndarray:
+    """Zach 2002's accuracy, max(1, S / #originalFaces) / max(1, S / #faces), in (0, 1].
+
+    screen_size : S, estimated pixels of the representation's bounding box
+    faces : polygons of the representation r_ij
+    original_faces : polygons of the object's full-detail model
+    A representation with at least one face per pixel is as good as the original
+    (accuracy 1); below that, accuracy falls in proportion to its face count.
+    Inputs broadcast against each other.
+    """
+    s = np.asarray(screen_size, np.float64)
+    f = np.maximum(np.asarray(faces, np.float64), 1.0)
+    o = np.maximum(np.asarray(original_faces, np.float64), 1.0)
+    return np.maximum(1.0, s / o) / np.maximum(1.0, s / f)
+
+
+# ----------------------------------------------------------------------------- qualitative factors
+
+
+def importance(object_class: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """(n,) semantic weight of each object's class (walls before pencils); classes outside the table weigh 1."""
+    cls = np.asarray(object_class, np.int64)
+    table = np.asarray(table, np.float64)
+    if table.size and not (np.isfinite(table).all() and (table > 0).all() and (table <= 1).all()):
+        raise ValueError("importance weights must lie in (0, 1]")
+    known = (cls >= 0) & (cls < table.size)
+    return np.where(known, table[np.where(known, cls, 0)] if table.size else 1.0, 1.0)
+
+
+def importance_table(class_names: list[str] | tuple[str, ...], weights: dict[str, float], default: float = 1.0) -> np.ndarray:
+    """(C,) float64 importance per class id, from weights by class name (missing names get ``default``)."""
+    table = np.array([float(weights.get(name, default)) for name in class_names], np.float64)
+    if not (np.isfinite(table).all() and (table > 0).all() and (table <= 1).all()):
+        raise ValueError("importance weights must lie in (0, 1]")
+    return table
+
+
+def focus(offset: np.ndarray, strength: float = 0.3) -> np.ndarray:
+    """1 − strength · offset, floored at MIN_FACTOR: benefit falls with distance from the screen centre.
+
+    offset : distance from the screen centre in [0, 1] (``camera.centre_offset``)
+    """
+    offset = np.clip(np.asarray(offset, np.float64), 0.0, 1.0)
+    return np.maximum(1.0 - strength * offset, MIN_FACTOR)
+
+
+def motion(speed_px_s: np.ndarray, polygon_px: np.ndarray, strength: float = 0.5, frame_time: float = 0.05) -> np.ndarray:
+    """1 / (1 + strength · blur): benefit falls with apparent speed relative to the average polygon.
+
+    speed_px_s : apparent screen speed, pixels per second (``camera.screen_speed``), (n,) or (n, K)
+    polygon_px : average polygon area in pixels (object's pixels / polygons), broadcastable
+    blur : polygons crossed per frame = speed · frame_time / √polygon_px. The reduction is
+    proportional to it while small (F&S) and never reaches 0.
+    """
+    speed = np.maximum(np.asarray(speed_px_s, np.float64), 0.0)
+    edge = np.sqrt(np.maximum(np.asarray(polygon_px, np.float64), 1.0))
+    return 1.0 / (1.0 + strength * speed * frame_time / edge)
+
+
+def hysteresis(
+    option: np.ndarray,
+    previous: np.ndarray,
+    algorithms: int = 1,
+    level_weight: float = 0.1,
+    algorithm_weight: float = 0.1,
+) -> np.ndarray:
+    """(n, K) in (0, 1]: 1 / (1 + level_weight·|ΔL| + algorithm_weight·|ΔR|) from the previous tuple.
+
+    option : (K,) or (n, K) option indices (level · R + algorithm)
+    previous : (n,) option drawn last time, −1 for none (those objects get 1 everywhere)
+    Changing the level or the algorithm from frame to frame is bothersome, so the
+    previous tuple keeps its full benefit and others lose in proportion to the change.
+    """
+    prev = np.asarray(previous, np.int64)[:, None]
+    opt = np.asarray(option, np.int64)
+    if opt.ndim == 1:
+        opt = opt[None, :]
+    d_level = np.abs(opt // algorithms - prev // algorithms)
+    d_alg = np.abs(opt % algorithms - prev % algorithms)
+    h = 1.0 / (1.0 + level_weight * d_level + algorithm_weight * d_alg)
+    return np.where(prev >= 0, h, 1.0)
+
+
+# ----------------------------------------------------------------------------- the product
+
+
+@dataclass(frozen=True)
+class BenefitFactors:
+    """Which factors of the F&S product are on, and how strongly each bites.
+
+    accuracy : "fs" (1 − 0.5/Samples^m), "zach" (face density) or "off"
+    exponent : m per rendering algorithm name (F&S accuracy)
+    *_strength / *_weight : slope of each qualitative factor; defaults are mild so that
+    Size · Accuracy dominates (an object at the corner keeps 70 % of its benefit).
+    frame_time : seconds per frame, turns screen speed into blur per frame (Motion)
+    """
+
+    size: bool = True
+    accuracy: str = "fs"
+    exponent: dict = field(default_factory=lambda: dict(ALGORITHM_EXPONENT))
+    algorithm_names: tuple = ALGORITHMS
+    importance: bool = True
+    focus: bool = True
+    focus_strength: float = 0.3
+    motion: bool = True
+    motion_strength: float = 0.5
+    frame_time: float = 0.05
+    hysteresis: bool = True
+    level_weight: float = 0.1
+    algorithm_weight: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.accuracy not in ("fs", "zach", "off"):
+            raise ValueError(f"accuracy must be 'fs', 'zach' or 'off', got {self.accuracy!r}")
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float) or (isinstance(v, int) and not isinstance(v, bool)):
+                if not (math.isfinite(v) and v >= 0):
+                    raise ValueError(f"{f.name} must be finite and non-negative, got {v}")
+        for name, m in self.exponent.items():
+            if not (math.isfinite(m) and m >= 0):
+                raise ValueError(f"exponent[{name!r}] must be finite and non-negative, got {m}")
+        missing = [a for a in self.algorithm_names if a not in self.exponent]
+        if missing:
+            raise ValueError(f"no accuracy exponent for algorithms {missing}")
+
+
+def benefit_matrix(
+    size: np.ndarray,
+    faces: np.ndarray,
+    *,
+    algorithms: int = 1,
+    factors: BenefitFactors = BenefitFactors(),
+    vertices: np.ndarray | None = None,
+    original_faces: np.ndarray | None = None,
+    object_class: np.ndarray | None = None,
+    importance_table: np.ndarray | None = None,
+    offset: np.ndarray | None = None,
+    speed: np.ndarray | None = None,
+    previous: np.ndarray | None = None,
+) -> np.ndarray:
+    """(n, K) float64 Benefit = Size · Accuracy · Importance · Focus · Motion · Hysteresis.
+
+    size : (n,) pixels each object covers
+    faces, vertices : (n, K) polygons / vertices of each option's level (option k: level k // R,
+        algorithm k % R with R = ``algorithms``)
+    original_faces : (n,) full-detail polygons for Zach's accuracy (None: each row's largest ``faces``)
+    object_class, importance_table : (n,) class id, (C,) weight per class — Importance
+    offset : (n,) distance from the screen centre in [0, 1] — Focus
+    speed : (n,) apparent screen speed, px/s — Motion (against each option's average polygon)
+    previous : (n,) option drawn last time, −1 none — Hysteresis
+    A factor is skipped when switched off in ``factors`` or when its input is None.
+    """
+    size = np.asarray(size, np.float64)
+    faces = np.asarray(faces, np.float64)
+    if faces.ndim != 2 or size.shape != faces.shape[:1]:
+        raise ValueError(f"size must be (n,) and faces (n, K); got {size.shape}, {faces.shape}")
+    if algorithms < 1 or algorithms > len(factors.algorithm_names):
+        raise ValueError(f"algorithms must be in 1..{len(factors.algorithm_names)}, got {algorithms}")
+    out = np.ones(faces.shape, np.float64)
+    if factors.size:
+        out *= size[:, None]
+    if factors.accuracy == "fs":
+        out *= algorithm_accuracy(size, faces, vertices, algorithms, factors.exponent, factors.algorithm_names)
+    elif factors.accuracy == "zach":
+        orig = faces.max(axis=1) if original_faces is None else np.asarray(original_faces, np.float64)
+        out *= zach_accuracy(size[:, None], faces, orig[:, None])
+    if factors.importance and object_class is not None and importance_table is not None:
+        out *= importance(object_class, importance_table)[:, None]
+    if factors.focus and offset is not None:
+        out *= focus(offset, factors.focus_strength)[:, None]
+    if factors.motion and speed is not None:
+        polygon_px = size[:, None] / np.maximum(faces, 1.0)
+        out *= motion(np.asarray(speed, np.float64)[:, None], polygon_px, factors.motion_strength, factors.frame_time)
+    if factors.hysteresis and previous is not None:
+        out *= hysteresis(np.arange(faces.shape[1]), previous, algorithms, factors.level_weight, factors.algorithm_weight)
+    return out
+
+
 def benefit(size: np.ndarray, faces: np.ndarray, m: float = 1.0) -> np.ndarray:
-    """(k,) float64 benefit of representations with ``faces`` polygons on objects covering ``size`` pixels."""
+    """(k,) float64 benefit of representations with ``faces`` polygons on objects covering ``size`` pixels.
+
+    The skeleton's Size · Accuracy (flat shading), kept for the callers that use it.
+    """
     return np.asarray(size, np.float64) * accuracy(faces, m)

@@ -13,7 +13,17 @@ import numpy as np
 
 from proto.camera import NEAR, far_plane, normalize, projection_matrix, view_matrix
 
-__all__ = ["View", "frustum_planes", "cull_boxes", "screen_size", "widened"]
+__all__ = [
+    "View",
+    "frustum_planes",
+    "cull_boxes",
+    "cull_hierarchy",
+    "screen_size",
+    "screen_centre",
+    "centre_offset",
+    "screen_speed",
+    "widened",
+]
 
 # The eight corners of a box as 0/1 choices of (hi - lo) along x, y, z.
 _CORNERS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=np.float64)
@@ -114,3 +124,95 @@ def screen_size(lo: np.ndarray, hi: np.ndarray, clip: np.ndarray, width: int, he
     y = np.clip(corners[..., 1] / safe_w, -1.0, 1.0)
     area = (x.max(axis=1) - x.min(axis=1)) * (y.max(axis=1) - y.min(axis=1)) * 0.25 * width * height
     return np.where(behind, float(width * height), area)
+
+
+def cull_hierarchy(parent: np.ndarray, lo: np.ndarray, hi: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """(N,) bool: a node is visible iff its own box passes the frustum and every ancestor's does.
+
+    A representation hierarchy (Zach's increments, Mason & Blake) is only entered
+    through visible parents, so a culled node culls its whole subtree. ``parent``
+    is (N,) int with −1 at roots. Pointer jumping: after round r each node has
+    folded in its 2^r nearest ancestors, so a tree of depth d takes ⌈log2 d⌉ + 1
+    array rounds and no per-node Python loop.
+    """
+    parent = np.asarray(parent, np.int64)
+    ok = cull_boxes(lo, hi, planes)
+    jump = parent.copy()
+    for _ in range(64):  # 2^64 ancestors: more than any tree holds
+        has = jump >= 0
+        if not has.any():
+            break
+        safe = np.where(has, jump, 0)
+        ok = ok & np.where(has, ok[safe], True)
+        jump = np.where(has, jump[safe], -1)
+    return ok
+
+
+def _centre_ndc(lo: np.ndarray, hi: np.ndarray, clip: np.ndarray, limit: float) -> np.ndarray:
+    """(N, 2) normalised device x, y of each box centre, clamped to [−limit, limit].
+
+    A centre behind the eye (w ≤ 0) has no true projection; it is put on the
+    border of the clamp square in the direction it lies (straight behind: a
+    corner), i.e. as far off-centre as anything can be.
+    """
+    c = (np.asarray(lo, np.float64) + np.asarray(hi, np.float64)) * 0.5
+    m = np.asarray(clip, np.float64)
+    h = c @ m[:, :3].T + m[:, 3]  # (N, 4) clip coordinates
+    xy, w = h[:, :2], h[:, 3]
+    front = w > 1e-9
+    ndc = np.clip(xy / np.where(front, w, 1.0)[:, None], -limit, limit)
+    reach = np.abs(xy).max(axis=1)
+    edge = np.where(reach[:, None] > 1e-12, xy / np.maximum(reach, 1e-300)[:, None] * limit, limit)
+    return np.where(front[:, None], ndc, edge)
+
+
+def _to_pixels(ndc: np.ndarray, width: int, height: int) -> np.ndarray:
+    """NDC → window pixels (OpenGL convention: origin bottom-left, y up)."""
+    return (ndc + 1.0) * 0.5 * np.array([width, height], np.float64)
+
+
+def screen_centre(lo: np.ndarray, hi: np.ndarray, clip: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(N, 2) float64 pixel position of each box centre's projection, clamped to the viewport.
+
+    Window convention: (0, 0) bottom-left, (width, height) top-right. Centres
+    behind the eye land on the viewport's border (see ``_centre_ndc``).
+    """
+    return _to_pixels(_centre_ndc(lo, hi, clip, 1.0), width, height)
+
+
+def centre_offset(lo: np.ndarray, hi: np.ndarray, clip: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(N,) float64 in [0, 1]: distance of each box centre's projection from the screen centre.
+
+    0 at the middle of the screen, 1 at a corner (distance over the half
+    diagonal); the input of F&S's Focus factor.
+    """
+    px = screen_centre(lo, hi, clip, width, height)
+    half = np.array([width, height], np.float64) * 0.5
+    return np.clip(np.linalg.norm(px - half, axis=1) / np.linalg.norm(half), 0.0, 1.0)
+
+
+#: How far outside the screen (in NDC units) apparent motion is still measured.
+SPEED_LIMIT_NDC = 4.0
+
+
+def screen_speed(
+    lo: np.ndarray,
+    hi: np.ndarray,
+    clip_now: np.ndarray,
+    clip_before: np.ndarray,
+    dt: float,
+    width: int,
+    height: int,
+) -> np.ndarray:
+    """(N,) float64 pixels per second each box centre moves on screen between two views.
+
+    The input of F&S's Motion factor: objects sweeping across the screen are
+    blurred and seen briefly. Positions are compared unclamped up to
+    ``SPEED_LIMIT_NDC`` so an object leaving the screen still counts as moving;
+    ``dt`` is the time between the two views in seconds (> 0).
+    """
+    if not dt > 0:
+        raise ValueError(f"dt must be positive, got {dt}")
+    now = _to_pixels(_centre_ndc(lo, hi, clip_now, SPEED_LIMIT_NDC), width, height)
+    before = _to_pixels(_centre_ndc(lo, hi, clip_before, SPEED_LIMIT_NDC), width, height)
+    return np.linalg.norm(now - before, axis=1) / float(dt)
