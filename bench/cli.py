@@ -162,6 +162,37 @@ def bench_build(
         print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
 
 
+@bench_app.command("select")
+def bench_select(
+    sizes: str = typer.Option("1000,10000,100000,1000000", help="objects per generated instance, comma-separated"),
+    levels: int = typer.Option(4, help="levels of detail per object (×4 faces per level)"),
+    repeats: int = typer.Option(7, help="timed runs per figure (the median is reported), after one warm-up"),
+    seed: int = typer.Option(0, help="random seed of the generated instances"),
+    exact_max: int = typer.Option(1000, help="largest size solved exactly by the MIP (HiGHS)"),
+    reference_max: int = typer.Option(100_000, help="largest size timed with the plain-Python reference greedy"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
+) -> None:
+    """Time the greedy from scratch and the incremental solver's coherent step; check optimality and goals."""
+    from bench.select import run
+
+    try:
+        parsed = [int(s.replace("_", "")) for s in sizes.split(",") if s.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"expected comma-separated integers, got {sizes!r}", param_hint="--sizes") from None
+    if not parsed or min(parsed) < 1:
+        raise typer.BadParameter("sizes must be positive integers", param_hint="--sizes")
+    if levels < 1 or repeats < 1:
+        raise typer.BadParameter("must be at least 1", param_hint="--levels/--repeats")
+    bar, tick = _progress_bar("bench select", quiet=as_json)
+    with bar:
+        result = run(parsed, levels=levels, repeats=repeats, seed=seed, progress=tick, exact_max=exact_max,
+                     reference_max=reference_max)
+    for line in result["lines"]:  # to stderr under --json, so the JSON stays the last line of stdout
+        typer.echo(line, err=as_json)
+    if as_json:
+        print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
+
+
 @app.command()
 def serve(
     stores: list[Path] = typer.Argument(..., help="scene stores to serve, each under its recorded name"),

@@ -349,16 +349,9 @@ def test_a_split_that_lowers_the_cost_brings_back_increments_set_aside():
 
 def _greedy_levels(benefit, cost, valid, budget):
     """Server's greedy on the increments above each object's coarsest level (−1 = stay coarsest)."""
-    try:
-        from server.select.solvers import greedy
+    from server.select.solvers import greedy
 
-        try:
-            res = greedy.solve(Candidates.of(benefit, cost, valid), budget)
-        except TypeError:
-            res = greedy.solve(benefit, cost, budget, valid)
-        return res.level
-    except Exception:  # greedy is being reworked elsewhere; the independent references below still run
-        return None
+    return greedy.solve(Candidates.of(benefit, cost, valid), budget).level
 
 
 @given(st.integers(0, 2**32 - 1), st.integers(1, 12), st.integers(2, 4), st.data())
@@ -393,8 +386,7 @@ def test_flat_forest_reduces_to_the_greedy_knapsack(seed, n, k, data):
     inc_c = cost[:, 1:] - cost[:, :1]
     if steps_v.size:
         g = _greedy_levels(inc_b, inc_c, valid[:, 1:], budget - base)
-        if g is not None:
-            assert r.level.tolist() == (np.asarray(g) + 1).tolist()
+        assert r.level.tolist() == (np.asarray(g) + 1).tolist()
     # ... and, the cut landing exactly on a step, optimal (brute force over all level choices).
     if n <= 6:
         best = -np.inf

@@ -12,6 +12,7 @@ from hypothesis.extra.numpy import arrays
 from server.select.camera import View, cull_boxes, frustum_planes, screen_size, widened
 from server.select.cost import CostModel
 from server.select.selection import Levels, select
+from server.select.solvers.candidates import Candidates
 from server.select.solvers.greedy import solve
 
 BOUNDS = np.array([[-100.0, -100.0, -10.0], [100.0, 100.0, 10.0]])
@@ -78,7 +79,7 @@ def _instances(draw_n=st.integers(1, 40), draw_k=st.integers(1, 5)):
 @given(_instances())
 def test_greedy_never_exceeds_the_budget(inst):
     b, c, valid, budget = inst
-    r = solve(b, c, budget, valid)
+    r = solve(Candidates.of(b, c, valid), budget)
     chosen = r.level >= 0
     assert (r.level < valid.sum(axis=1)).all()
     assert valid[chosen, r.level[chosen]].all()
@@ -90,7 +91,7 @@ def test_greedy_never_exceeds_the_budget(inst):
 @given(_instances(st.integers(1, 4), st.integers(1, 3)))
 def test_greedy_reaches_at_least_half_the_optimum(inst):
     b, c, valid, budget = inst
-    r = solve(b, c, budget, valid)
+    r = solve(Candidates.of(b, c, valid), budget)
     best = 0.0
     n, k = b.shape
     for choice in itertools.product(range(-1, k), repeat=n):
@@ -105,7 +106,7 @@ def test_greedy_reaches_at_least_half_the_optimum(inst):
 def test_greedy_prefers_value_and_fills_the_budget():
     b = np.array([[1.0, 1.5], [2.0, 2.2]])
     c = np.array([[1.0, 3.0], [1.0, 2.0]])
-    r = solve(b, c, budget=3.0)
+    r = solve(Candidates.of(b, c), budget=3.0)
     assert r.level.tolist() == [0, 1] and r.cost == 3.0  # the fill round takes object 1's finer level
 
 

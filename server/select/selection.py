@@ -88,7 +88,9 @@ def select(
     benefit = np.where(valid, level_benefit(size[:, None], levels.rep_faces[rep]), 0.0)
     cost = np.where(valid, cost_model.predict(levels.rep_vertices[rep]), np.inf)
 
-    result = solvers.get(solver)(benefit, cost, budget, valid)
+    faces = np.where(valid, levels.rep_faces[rep], 0)
+    cand = solvers.Candidates.of(benefit, cost, valid, size=size, faces=faces)
+    result = solvers.get(solver)(cand, budget)
     drawn = result.level >= 0
     reps = rep[drawn, result.level[drawn]]
     return Choice(reps=reps, cost=result.cost, benefit=result.benefit, visible=int(visible.size), stats=result.stats)

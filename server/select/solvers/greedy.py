@@ -1,138 +1,319 @@
 """Greedy multiple-choice knapsack by value = benefit / cost (Funkhouser & Séquin 1993, section 4.3).
 
-Each object offers a chain of levels (or nothing). The greedy takes, over all
-objects, the step to the next level with the highest value per unit of cost
-until the budget is full. Levels that no mix of neighbours beats are removed
-first (the upper concave hull of each object's cost/benefit points), so every
-object's steps have falling values and a single global sort by value, a cumulative
-sum of costs and a cut at the budget solve it with no per-object Python loop.
-With diminishing returns this is within a factor two of the optimum.
+Each object offers its options (level × rendering algorithm tuples) or nothing.
+Options that no mix of cheaper ones beats are removed first: what remains is the
+upper concave hull of the object's (cost, benefit) points, starting at (0, 0) =
+not drawn. Along a hull the *increments* (steps to the next hull point) have
+strictly falling values Δbenefit / Δcost, so the greedy "take the increment of
+highest value while the budget holds" is a cut of all increments at a value
+threshold. The threshold is found by a weighted selection (a sample brackets
+it, only the increments inside the bracket are sorted), not a full sort. Fill
+rounds then add the best increments that still fit, and the answer is compared
+with the best single option, which keeps the factor-two guarantee.
 
 >>> import numpy as np
+>>> from server.select.solvers.candidates import Candidates
 >>> from server.select.solvers.greedy import solve
->>> benefit = np.array([[1.0, 1.5], [2.0, 2.2]]); cost = np.array([[1.0, 3.0], [1.0, 2.0]])
->>> solve(benefit, cost, budget=3.0).level.tolist()
+>>> cand = Candidates.of([[1.0, 1.5], [2.0, 2.2]], [[1.0, 3.0], [1.0, 2.0]])
+>>> solve(cand, budget=3.0).level.tolist()
 [0, 1]
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from .candidates import NO_LIMIT, Candidates, Limit
 from .result import Result
 
-__all__ = ["solve", "upper_hull"]
+__all__ = ["Hull", "upper_hull", "cut", "fill", "threshold", "solve"]
+
+_SAMPLE = 8192  # sample size that brackets the value threshold
+_MARGIN = 128  # sample positions either side of the estimated threshold (about 3 standard deviations)
 
 
-def upper_hull(benefit: np.ndarray, cost: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(n, K) bool: levels on each object's upper concave hull, starting from (0, 0) = not drawn.
+@dataclass
+class Hull:
+    """Each object's upper concave hull as increments, in (K, n) arrays (row j: every object's j-th increment).
 
-    benefit, cost : (n, K) float64, levels coarsest → finest; cost rising along K
-    valid : (n, K) bool, padding marked False
+    Rows are contiguous, so per-increment work over all objects is a few passes over (n,) rows.
+
+    value  : Δbenefit / Δcost of the increment to hull point j (−inf: padding); strictly falling along j
+    d_cost : Δcost of the increment (0 in padding)
+    count  : (n,) hull points per object
+    opt    : option index of the j-th hull point (−1: padding); None when every object's
+             hull is all its options in order (the fast path), i.e. opt[j] = j
     """
-    n, k = benefit.shape
-    bx = np.concatenate([np.zeros((n, 1)), benefit], axis=1)
-    cx = np.concatenate([np.zeros((n, 1)), cost], axis=1)
-    ok = np.concatenate([np.ones((n, 1), bool), valid], axis=1)
-    stack = np.zeros((n, k + 1), dtype=np.int64)
-    top = np.ones(n, dtype=np.int64)  # stack holds point 0
-    rows = np.arange(n)
-    for j in range(1, k + 1):
-        last = stack[rows, top - 1]
-        # A level that costs more than the hull's last point but gains nothing is dominated.
-        take = ok[:, j] & (bx[:, j] > bx[rows, last]) & (cx[:, j] > cx[rows, last])
-        for _ in range(k):
-            a = stack[rows, np.maximum(top - 2, 0)]
-            b = stack[rows, top - 1]
-            # Pop b while the slope a→b is not above the slope b→j (b is not on the hull).
-            pop = take & (top >= 2) & (
-                (bx[rows, b] - bx[rows, a]) * (cx[:, j] - cx[rows, b])
-                <= (bx[:, j] - bx[rows, b]) * (cx[rows, b] - cx[rows, a])
-            )
-            if not pop.any():
+
+    value: np.ndarray
+    d_cost: np.ndarray
+    count: np.ndarray
+    opt: np.ndarray | None
+    cand: Candidates
+    ok: np.ndarray  # (n, K) the usable options the hull was built from
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.value.shape
+
+    def chosen(self, steps: np.ndarray) -> np.ndarray:
+        """(n,) option index after taking the first ``steps`` increments of each object (−1: none)."""
+        k, n = self.shape
+        steps = np.asarray(steps, np.int64)
+        if self.opt is None:
+            return steps - 1
+        level = self.opt.ravel()[np.maximum(steps - 1, 0) * n + np.arange(n)].astype(np.int64)
+        level[steps <= 0] = -1
+        return level
+
+    def d_benefit(self) -> np.ndarray:
+        """(K, n) Δbenefit of each increment (0 in padding)."""
+        with np.errstate(invalid="ignore"):
+            return np.where(self.value > -np.inf, self.value * self.d_cost, 0.0)
+
+
+def _usable(cand: Candidates, cap: float | None) -> np.ndarray:
+    """(n, K) bool: valid options with a finite benefit and a cost in (0, cap]."""
+    ok = cand.valid & (cand.cost > 0) & np.isfinite(cand.benefit)
+    ok &= cand.cost <= cap if cap is not None else cand.cost < np.inf
+    return ok
+
+
+def upper_hull(cand: Candidates, cap: float | None = None) -> Hull:
+    """The hull of every object's usable options (valid, cost > 0, cost ≤ ``cap`` if given).
+
+    Objects whose options are already sorted by cost with falling values (the usual
+    concave levels) take a fast path of a few passes per column; the others are
+    sorted by cost and pruned in at most K vectorised passes. Few large
+    temporaries: on this machine fresh pages cost more than the arithmetic.
+    """
+    b, c = cand.benefit, cand.cost
+    n, k = b.shape
+    ok = _usable(cand, cap)
+    value = np.empty((k, n))
+    d_cost = np.empty((k, n))
+    fast = ok.all(axis=1) if k <= 1 else None
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for j in range(k):
+            if j == 0:
+                d_cost[0] = c[:, 0]
+                np.divide(b[:, 0], d_cost[0], out=value[0])
+                fast = ok[:, 0] & (d_cost[0] > 0)
+            else:
+                np.subtract(c[:, j], c[:, j - 1], out=d_cost[j])
+                np.subtract(b[:, j], b[:, j - 1], out=value[j])
+                value[j] /= d_cost[j]
+                fast &= ok[:, j]
+                fast &= d_cost[j] > 0
+                fast &= value[j - 1] > value[j]
+        fast &= value[k - 1] > 0
+    count = np.full(n, k, dtype=np.int64)
+    opt = None
+    slow = np.flatnonzero(~fast)
+    if slow.size:
+        s_opt, s_val, s_dc, s_count = _hull_general(b[slow], c[slow], ok[slow])
+        opt = np.empty((k, n), np.int16 if k < 2**15 else np.int64)
+        opt[:] = np.arange(k, dtype=opt.dtype)[:, None]
+        opt[:, slow], value[:, slow], d_cost[:, slow] = s_opt.T, s_val.T, s_dc.T
+        count[slow] = s_count
+    return Hull(value, d_cost, count, opt, cand, ok)
+
+
+def _hull_general(b: np.ndarray, c: np.ndarray, ok: np.ndarray):
+    """Hull of arbitrary rows: sort by cost, then drop dominated points and points on or under a chord.
+
+    Removing every such point of a pass at once is safe: a point dominated by, or
+    under the chord of, points of the set is never a vertex of the hull.
+    Returns (opt, value, d_cost, count), each (m, K) left-aligned but count (m,).
+    """
+    m, k = b.shape
+    base = (np.arange(m) * k)[:, None]
+    key = np.where(ok, c, np.inf)
+    if (key[:, 1:] >= key[:, :-1]).all():  # the usual case: cost already rises along the options
+        order = np.broadcast_to(np.arange(k), (m, k))
+        B, C, alive = b, c, ok.copy()
+    else:
+        order = np.argsort(key, axis=1, kind="stable")
+        flat = (order + base).ravel()
+        B = b.ravel().take(flat).reshape(m, k)
+        C = c.ravel().take(flat).reshape(m, k)
+        alive = ok.ravel().take(flat).reshape(m, k)
+    # Points are padded with the origin (0, 0) at flat index m·k: "no previous point".
+    Bx = np.append(B.ravel(), 0.0)
+    Cx = np.append(C.ravel(), 0.0)
+    origin = m * k
+    row = base[:, 0]
+    prev = np.empty((m, k), np.int64)
+    nxt = np.empty((m, k), np.int64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for _ in range(k + 1):
+            # The nearest alive point before and after each column (column scans: K is small).
+            cur = np.full(m, origin)
+            for j in range(k):
+                prev[:, j] = cur
+                cur = np.where(alive[:, j], row + j, cur)
+            cur = np.full(m, origin)
+            for j in range(k - 1, -1, -1):
+                nxt[:, j] = cur
+                cur = np.where(alive[:, j], row + j, cur)
+            bp, cp = Bx.take(prev), Cx.take(prev)
+            s_in = (B - bp) / (C - cp)
+            s_out = np.append(s_in.ravel(), -np.inf).take(nxt)
+            remove = alive & ((B <= bp) | (s_in <= s_out))
+            if not remove.any():
                 break
-            top -= pop
-        stack[rows[take], top[take]] = j
-        top += take
-    on_hull = np.zeros((n, k + 1), dtype=bool)
-    depth = np.arange(k + 1)[None, :] < top[:, None]
-    on_hull[np.repeat(rows, k + 1)[depth.ravel()], stack[depth]] = True
-    return on_hull[:, 1:]
+            alive &= ~remove
+    # Left-align the alive columns, in cost order: alive column j goes to slot (alive before j).
+    count = alive.sum(axis=1)
+    src = np.flatnonzero(alive.ravel())
+    dst = (np.cumsum(alive, axis=1) - 1 + base).ravel()[src]
+    value = np.full(m * k, -np.inf)
+    value[dst] = s_in.ravel()[src]
+    dc = np.zeros(m * k)
+    dc[dst] = (C - cp).ravel()[src]
+    opt = np.full(m * k, -1, np.int64)
+    opt[dst] = np.ascontiguousarray(order).ravel()[src]
+    return opt.reshape(m, k), value.reshape(m, k), dc.reshape(m, k), count
+
+
+def cut(value: np.ndarray, weight: np.ndarray, capacity: float) -> np.ndarray:
+    """(N,) bool: the longest prefix of items in falling value whose weights fit ``capacity``.
+
+    Items of value −inf are never taken and must weigh 0. A strided sample
+    estimates the threshold value; one pass counts the weight above a bracket
+    around it and only the items inside the bracket are sorted (O(N) instead of
+    O(N log N)). Ties may be broken either way.
+    """
+    if not capacity >= 0:
+        return np.zeros(value.size, bool)
+    total = float(weight.sum())
+    if total <= capacity:
+        return value > -np.inf
+    n = value.size
+    if n > 8 * _SAMPLE:
+        stride = n // _SAMPLE
+        sv, sw = value[::stride], weight[::stride]
+        so = np.argsort(-sv, kind="stable")
+        scale = total / max(float((sw * (sv > -np.inf)).sum()), 1e-300)
+        pos = int(np.searchsorted(np.cumsum(sw[so]) * scale, capacity))
+        for margin in (_MARGIN, 4 * _MARGIN, 16 * _MARGIN):
+            hi_t = sv[so[pos - margin]] if pos - margin >= 0 else np.inf
+            lo_t = sv[so[pos + margin]] if pos + margin < so.size else -np.inf
+            above = value > hi_t
+            s_above = float((weight * above).sum())
+            if s_above > capacity:
+                continue
+            mid = value > lo_t
+            mid &= ~above
+            if lo_t > -np.inf and s_above + float((weight * mid).sum()) <= capacity:
+                continue
+            return _sorted_cut(value, weight, capacity, above, s_above, np.flatnonzero(mid))
+    return _sorted_cut(value, weight, capacity, np.zeros(n, bool), 0.0, np.flatnonzero(value > -np.inf))
+
+
+def _sorted_cut(value, weight, capacity, taken, base, idx):
+    idx = idx[np.argsort(-value[idx])]
+    added = base + np.cumsum(weight[idx])
+    m = int(np.searchsorted(added, capacity, side="right"))
+    taken[idx[:m]] = True
+    return taken
+
+
+def fill(hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_rounds: int):
+    """Rounds adding, in falling value, each object's next increment while it still fits.
+
+    Returns (rounds, stopped); ``steps`` is updated in place. Only objects whose
+    next increment fits are looked at, and the remaining budget only shrinks, so
+    the set shrinks every round.
+    """
+    k, n = hull.shape
+    vflat, cflat = hull.value.ravel(), hull.d_cost.ravel()
+    at = np.minimum(steps, k - 1) * n + np.arange(n)
+    idx = np.flatnonzero((steps < hull.count) & (cflat[at] <= remaining))
+    rounds = 0
+    while idx.size and rounds < max_rounds:
+        if limit.expired():
+            return rounds, "limit"
+        at = np.minimum(steps[idx], k - 1) * n + idx
+        ready = (steps[idx] < hull.count[idx]) & (cflat[at] <= remaining)
+        idx, at = idx[ready], at[ready]
+        if idx.size == 0:
+            break
+        order = np.argsort(-vflat[at], kind="stable")
+        added = np.cumsum(cflat[at[order]])
+        m = max(1, int(np.searchsorted(added, remaining, side="right")))
+        steps[idx[order[:m]]] += 1
+        remaining -= float(added[m - 1])
+        rounds += 1
+    return rounds, "done"
+
+
+def totals(cand: Candidates, level: np.ndarray) -> tuple[float, float]:
+    """(cost, benefit) of a selection of options."""
+    rows = np.flatnonzero(level >= 0)
+    at = rows * cand.k + level[rows]
+    return float(cand.cost.ravel().take(at).sum()), float(cand.benefit.ravel().take(at).sum())
+
+
+def best_single(cand: Candidates, budget: float, level: np.ndarray, cost: float, benefit: float,
+                ok: np.ndarray | None = None):
+    """The better of a selection and the best single option that fits: the factor-two guarantee.
+
+    ok : the usable options (``_usable(cand, budget)``) if already known
+    """
+    if cand.benefit.size == 0:
+        return level, cost, benefit, False
+    ok = _usable(cand, budget) if ok is None else ok
+    top = float(np.max(cand.benefit, where=ok, initial=-np.inf))
+    if top > benefit:
+        best = int(np.flatnonzero(ok.ravel() & (cand.benefit.ravel() == top))[0])
+        level = np.full(cand.n, -1, dtype=np.int64)
+        level[best // cand.k] = best % cand.k
+        return level, float(cand.cost.flat[best]), top, True
+    return level, cost, benefit, False
 
 
 def solve(
-    benefit: np.ndarray,
-    cost: np.ndarray,
+    cand: Candidates,
     budget: float,
-    valid: np.ndarray | None = None,
+    *,
+    limit: Limit = NO_LIMIT,
+    state: dict | None = None,
     max_rounds: int = 64,
 ) -> Result:
-    """Choose at most one level per object maximising Σ benefit with Σ cost ≤ budget.
+    """Choose at most one option per object maximising Σ benefit with Σ cost ≤ budget, from scratch.
 
-    benefit, cost : (n, K) float64, levels coarsest → finest (pad with anything, mark in ``valid``)
-    budget : seconds
-    max_rounds : bound on the fill rounds after the first cut (anytime: each round is feasible)
-    Returns a ``Result`` whose ``level`` is −1 for objects left undrawn.
-
-    After the cut at the budget, rounds fill the remainder with the best next steps
-    that still fit; finally the answer is compared with the best single level, which
-    makes the factor-two guarantee hold on every instance.
+    max_rounds : bound on the fill rounds after the cut (anytime: every round is feasible)
+    Returns a ``Result`` whose ``level`` is the option index, −1 for objects left undrawn.
     """
-    benefit = np.asarray(benefit, np.float64)
-    cost = np.asarray(cost, np.float64)
-    n, k = benefit.shape
-    valid = np.ones((n, k), dtype=bool) if valid is None else np.asarray(valid, bool)
-    valid = valid & (cost <= budget) & (cost > 0)  # a level dearer than the whole budget is never feasible
-    level = np.full(n, -1, dtype=np.int64)
-    if n == 0 or budget <= 0 or not valid.any():
-        return Result(level=level, cost=0.0, benefit=0.0, stats={"increments": 0, "candidates": 0, "rounds": 0})
+    n = cand.n
+    if n == 0 or cand.k == 0 or not budget > 0:
+        return Result(np.full(n, -1, dtype=np.int64), 0.0, 0.0,
+                      {"stopped": "done", "increments": 0, "rounds": 0, "candidates": 0, "threshold": None})
+    hull = upper_hull(cand, budget)
+    taken = cut(hull.value.ravel(), hull.d_cost.ravel(), budget)
+    # Along an object the values fall strictly, so the taken increments are a prefix of its hull.
+    steps = taken.reshape(hull.shape).sum(axis=0)
+    spent = float((hull.d_cost.ravel() * taken).sum())
+    rounds, stopped = fill(hull, steps, budget - spent, limit, max_rounds)
+    level = hull.chosen(steps)
+    cost, benefit = totals(cand, level)
+    level, cost, benefit, single = best_single(cand, budget, level, cost, benefit, hull.ok)
+    return Result(level, cost, benefit, {
+        "stopped": stopped, "increments": int(steps.sum()), "rounds": rounds,
+        "candidates": int(hull.count.sum()), "single": single, "threshold": threshold(hull, steps),
+    })
 
-    hull = upper_hull(benefit, cost, valid)
-    obj, lev = np.nonzero(hull)  # row-major: per object, levels ascending
-    # The previous hull point of each hull point: the one before it on the same object, else "not drawn".
-    first = np.r_[True, obj[1:] != obj[:-1]]
-    prev_b = np.where(first, 0.0, np.r_[0.0, benefit[obj[:-1], lev[:-1]]])
-    prev_c = np.where(first, 0.0, np.r_[0.0, cost[obj[:-1], lev[:-1]]])
-    d_benefit = benefit[obj, lev] - prev_b
-    d_cost = cost[obj, lev] - prev_c
-    value = d_benefit / d_cost
 
-    order = np.argsort(-value, kind="stable")
-    spent = np.cumsum(d_cost[order])
-    cut = int(np.searchsorted(spent, budget, side="right"))
-    taken = np.zeros(obj.size, dtype=bool)
-    taken[order[:cut]] = True
-    remaining = budget - (float(spent[cut - 1]) if cut else 0.0)
+def threshold(hull: Hull, steps: np.ndarray) -> float | None:
+    """The value of the best increment left out: where the cut stopped.
 
-    rounds = 0
-    while rounds < max_rounds:
-        # Each object's next step, if it still fits; at most one per object, so any subset is consistent.
-        ready = ~taken & (first | np.r_[False, taken[:-1]]) & (d_cost <= remaining)
-        idx = np.nonzero(ready)[0]
-        if idx.size == 0:
-            break
-        idx = idx[np.argsort(-value[idx], kind="stable")]
-        fill = np.cumsum(d_cost[idx])
-        m = max(1, int(np.searchsorted(fill, remaining, side="right")))
-        taken[idx[:m]] = True
-        remaining -= float(fill[m - 1])
-        rounds += 1
-
-    # Along each object steps are taken in order, so its level is the finest step taken.
-    np.maximum.at(level, obj[taken], lev[taken])
-    rows = np.nonzero(level >= 0)[0]
-    total_cost = float(cost[rows, level[rows]].sum())
-    total_benefit = float(benefit[rows, level[rows]].sum())
-
-    single = np.where(valid, benefit, -np.inf)
-    best = int(np.argmax(single))
-    if single.flat[best] > total_benefit:
-        level[:] = -1
-        level[best // k] = best % k
-        total_cost, total_benefit = float(cost.flat[best]), float(single.flat[best])
-    return Result(
-        level=level,
-        cost=total_cost,
-        benefit=total_benefit,
-        stats={"increments": int(taken.sum()), "candidates": int(obj.size), "rounds": rounds},
-    )
+    The next frame's incremental solver starts its search around it (state["threshold"]).
+    """
+    k, n = hull.shape
+    nxt = hull.value.ravel().take(np.minimum(steps, k - 1) * n + np.arange(n))
+    nxt = nxt[steps < hull.count]
+    top = float(nxt.max()) if nxt.size else -np.inf
+    return top if np.isfinite(top) and top > 0 else None
