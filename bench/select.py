@@ -170,16 +170,10 @@ def _median_time(fn: Callable, repeats: int, warmup: bool = True):
 
 
 def _exact(cand, budget: float):
-    """The MIP optimum, solved on costs in units of the budget.
-
-    Scaling every cost and the budget alike leaves the knapsack unchanged; costs of a few µs
-    otherwise sit near HiGHS' tolerances and its "Optimal" fell short of the greedy.
-    """
-    from dataclasses import replace
-
+    """The MIP optimum (exact.solve scales costs to the budget itself)."""
     from server.select.solvers import exact
 
-    return exact.solve(replace(cand, cost=cand.cost / budget), 1.0)
+    return exact.solve(cand, budget)
 
 
 def _ratio(a: float | None, b: float | None) -> float | None:

@@ -17,8 +17,10 @@ bad message yields an ``error`` frame and changes nothing else.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
+import time
 from dataclasses import dataclass
 from typing import Mapping, Protocol
 
@@ -41,9 +43,11 @@ from proto.messages import (
 )
 
 from .select import solvers
+from .select.benefit import importance_table
 from .select.camera import View
 from .select.cost import CostModel
-from .select.selection import Levels, select
+from .select.selection import Memory, Scene, select
+from .select.solvers.candidates import Limit
 
 __all__ = ["Session", "SessionConfig", "SessionState", "SceneSource"]
 
@@ -74,6 +78,8 @@ class SessionConfig:
     cache_bytes : the client's cache budget the server's mirror keeps to
     c_vertex : the cost model's first guess, seconds per vertex
     alpha : weight of each measured frame in the cost model's running average
+    select_limit : seconds a selection may take; an anytime solver returns its best so far then
+    importance : Importance weight per semantic class name (F&S); unnamed classes weigh 1
     """
 
     tau: float = 0.5
@@ -81,6 +87,8 @@ class SessionConfig:
     cache_bytes: int = 512 * 1024 * 1024
     c_vertex: float = 2.0e-7
     alpha: float = 0.2
+    select_limit: float = 0.1
+    importance: dict = dataclasses.field(default_factory=dict)
 
 
 class Session:
@@ -100,6 +108,8 @@ class Session:
         self.errors = 0
         self.bytes_sent = 0
         self.last_frame_time = 0.0
+        self._memory = Memory()
+        self.last_stats: dict = {}
 
     # ------------------------------------------------------------------ input
 
@@ -119,6 +129,7 @@ class Session:
             if isinstance(message, FrameReport):
                 self.frames += 1
                 self.last_frame_time = message.time
+                self._memory.frame_time = message.time
                 self.cost.update(message.time, message.vertices)
                 return []
             raise ProtocolError("unknown_type", f"'{message.type}' is not a client message")
@@ -139,7 +150,8 @@ class Session:
         self.hello = hello
         self.scene_name = hello.scene
         index = self.scenes[hello.scene].index
-        self._levels = Levels.of(index)
+        self._scene = Scene.of(index, importance_table(index.class_names, self.config.importance))
+        self._memory = Memory()
         self._bounds = np.asarray(index.bounds, np.float64)
         m = index.n_representations
         self._rep_bytes = np.asarray(index.rep_bytes, np.int64)
@@ -179,7 +191,11 @@ class Session:
         assert hello is not None and camera is not None
         view = View.of_pose(camera.eye, camera.forward, camera.up, hello.fov_y, tuple(hello.viewport), self._bounds)
         budget = hello.target_frame_time
-        choice = select(self._levels, view, self.cost, budget, hello.solver, self.config.margin_deg)
+        # The only clock the selection sees: an anytime solver stops at select_limit with its best so far.
+        limit = Limit(time.perf_counter, time.perf_counter() + self.config.select_limit)
+        choice = select(self._scene, view, self.cost, budget, hello.solver, self.config.margin_deg,
+                        memory=self._memory, t=camera.t, limit=limit)
+        self.last_stats = choice.stats
         self.seq += 1
         reps = choice.reps
         new = reps[~self._resident[reps]]
@@ -238,6 +254,7 @@ class Session:
             "cost_coeff": self.cost.c_vertex,
             "cost_updates": self.cost.updates,
             "last_frame_time": self.last_frame_time,
+            "solver_stopped": self.last_stats.get("stopped", ""),
             "bytes_sent": self.bytes_sent,
             "resident": int(self._resident.sum()) if self.state is not SessionState.AWAIT_HELLO else 0,
         }

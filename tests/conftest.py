@@ -24,3 +24,13 @@ def demo_store(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("scenes") / "demo-small.db"
     build_demo(path, objects=24, seed=3)
     return path
+
+
+@pytest.fixture(scope="session")
+def denhaag_store(tmp_path_factory) -> Path:
+    """A small Den Haag: buildings under an HLOD tree, a TIN terrain and tree groups, built once."""
+    from server.scene.catalog import build_named
+
+    path = tmp_path_factory.mktemp("scenes") / "denhaag-small.db"
+    build_named("denhaag", path, seed=0, size=400)
+    return path

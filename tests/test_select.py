@@ -114,7 +114,9 @@ def test_selection_draws_every_visible_object_before_refining_any():
     # Twenty objects ahead, two levels each; the budget allows all coarse levels and a few fine ones.
     n = 20
     lo = np.stack([np.linspace(-5, 5, n), np.full(n, 20.0), np.zeros(n)], axis=1)
-    levels = Levels(lo, lo + 0.5, np.arange(n) * 2, np.full(n, 2), np.tile([100, 1000], n), np.tile([60, 600], n))
+    # 4 m boxes cover ~10⁴ pixels: more than the fine level's polygons, so refining gains accuracy (F&S
+    # count at most one sample per pixel).
+    levels = Levels(lo, lo + 4.0, np.arange(n) * 2, np.full(n, 2), np.tile([100, 1000], n), np.tile([60, 600], n))
     model = CostModel(c_vertex=1e-6)
     budget = model.c_vertex * (60 * n + 540 * 3)
     choice = select(levels, _view(), model, budget)

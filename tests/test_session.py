@@ -106,7 +106,7 @@ def test_bad_hello_is_refused_and_may_be_retried(scenes, fields, code):
 
 def test_cache_mirror_evicts_under_pressure_and_never_selects_what_the_client_lacks(scenes):
     index = next(iter(scenes.values())).index
-    small = int(np.sort(index.rep_bytes)[::-1][:20].sum())  # room for about 20 representations
+    small = int(np.sort(index.rep_bytes)[::-1][:8].sum())  # room for about 8 representations
     s = _open(scenes, SessionConfig(cache_bytes=small))
     held: set[int] = set()
     tour = index.tour

@@ -2,20 +2,32 @@
 
 The steps the session runs every τ, as one pure function over the scene's
 arrays, so that a benchmark or a test can run exactly what a session runs.
+
+A scene offers three views of its objects (``Scene``): the flat one (triangle-mesh
+leaves, for the flat solvers), the hierarchical one (every mesh, HLOD and terrain
+node, for Mason & Blake's solver) and the vegetation (tree groups, the continuous
+part of the mixed solver). What a session's selection remembers from one run to
+the next — the options drawn last time (hysteresis, frame coherence), the last
+view (motion), Feedback's threshold — is a ``Memory`` it owns.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import solvers
-from .benefit import benefit as level_benefit
-from .camera import View, cull_boxes, frustum_planes, screen_size, widened
+from .benefit import BenefitFactors, benefit_matrix
+from .camera import View, centre_offset, cull_boxes, cull_hierarchy, frustum_planes, screen_size, screen_speed, widened
 from .cost import CostModel
+from .solvers.candidates import NO_LIMIT, Candidates, Limit
 
-__all__ = ["Levels", "Choice", "select"]
+__all__ = ["Levels", "Scene", "Memory", "Choice", "select", "HIERARCHICAL", "MIXED"]
+
+#: Solvers that read the hierarchical view, and the one that also takes the vegetation.
+HIERARCHICAL = frozenset({"hierarchical"})
+MIXED = frozenset({"mixed"})
 
 
 @dataclass(frozen=True)
@@ -25,7 +37,10 @@ class Levels:
     object_lo, object_hi : (n, 3) float bounding boxes
     rep_first, rep_count : (n,) int — the object's representations are ids
         rep_first .. rep_first + rep_count − 1, coarsest first
-    rep_faces, rep_vertices : (m,) int
+    rep_faces, rep_vertices : (m,) int, over the whole scene
+    object_class : (n,) int class ids (Importance), or None
+    ids    : (n,) int64 scene object ids of these rows (None: 0..n−1)
+    parent : (n,) int64 parent row within this view, −1 for roots (hierarchical view), or None
     """
 
     object_lo: np.ndarray
@@ -34,19 +49,74 @@ class Levels:
     rep_count: np.ndarray
     rep_faces: np.ndarray
     rep_vertices: np.ndarray
+    object_class: np.ndarray | None = None
+    ids: np.ndarray | None = None
+    parent: np.ndarray | None = None
+
+    @property
+    def n(self) -> int:
+        return int(self.object_lo.shape[0])
+
+    @classmethod
+    def subset(cls, index, rows: np.ndarray, hierarchy: bool = False) -> "Levels":
+        rows = np.asarray(rows, np.int64)
+        parent = None
+        if hierarchy:
+            local = np.full(index.n_objects, -1, np.int64)
+            local[rows] = np.arange(rows.size)
+            up = index.object_parent[rows].astype(np.int64)
+            parent = np.where(up >= 0, local[np.maximum(up, 0)], -1)
+        return cls(
+            index.object_lo[rows], index.object_hi[rows], index.rep_first[rows], index.rep_count[rows],
+            index.rep_faces, index.rep_vertices, index.object_class[rows].astype(np.int64), rows, parent,
+        )
 
     @classmethod
     def of(cls, index) -> "Levels":
-        """The flat view of a scene index: its triangle-mesh leaves (``SceneIndex.flat``).
+        """The flat view of a scene index: its triangle-mesh leaves (``SceneIndex.flat``)."""
+        return cls.subset(index, np.nonzero(index.flat)[0])
 
-        HLOD proxies, coarse terrain patches and tree groups need the
-        hierarchical and mixed solvers; a flat selection draws the leaves only.
-        """
-        flat = np.nonzero(index.flat)[0]
+
+@dataclass(frozen=True)
+class Scene:
+    """The three views of a scene the solvers read, and the importance of each semantic class."""
+
+    flat: Levels
+    hierarchy: Levels | None = None
+    vegetation: Levels | None = None
+    importance: np.ndarray | None = None  # (C,) weight per class id
+    n_objects: int = 0
+
+    @classmethod
+    def of(cls, index, importance: np.ndarray | None = None) -> "Scene":
+        from server.scene.store import TREES
+
+        trees = index.object_kind == TREES
         return cls(
-            index.object_lo[flat], index.object_hi[flat], index.rep_first[flat], index.rep_count[flat],
-            index.rep_faces, index.rep_vertices,
+            flat=Levels.of(index),
+            hierarchy=Levels.subset(index, np.nonzero(~trees)[0], hierarchy=True),
+            vegetation=Levels.subset(index, np.nonzero(trees)[0]),
+            importance=importance,
+            n_objects=int(index.n_objects),
         )
+
+
+@dataclass
+class Memory:
+    """What a session's selection carries from one run to the next.
+
+    option    : (n_objects,) int64 — option (level) drawn per scene object last time, −1 none
+    view, t   : the last (widened) view and its client time, for apparent screen speed
+    solver    : per-solver state passed in and updated from the result (Feedback's
+                threshold, the incremental solver's value threshold)
+    frame_time: the client's last measured frame time (Feedback reads it)
+    """
+
+    option: np.ndarray | None = None
+    view: View | None = None
+    t: float | None = None
+    solver: dict = field(default_factory=dict)
+    frame_time: float | None = None
 
 
 @dataclass(frozen=True)
@@ -58,39 +128,172 @@ class Choice:
     benefit: float
     visible: int
     stats: dict
+    x: np.ndarray | None = None  # vegetation resolutions (mixed solver), one per visible tree group
+
+
+def _options(lv: Levels, rows: np.ndarray):
+    """(v, K) representation ids, validity, faces and vertices of the given rows' levels."""
+    count = lv.rep_count[rows].astype(np.int64)
+    k = int(count.max()) if count.size else 1
+    slot = np.arange(k)[None, :]
+    valid = slot < count[:, None]
+    rep = np.where(valid, lv.rep_first[rows, None].astype(np.int64) + slot, 0)
+    return rep, valid, np.where(valid, lv.rep_faces[rep], 0), np.where(valid, lv.rep_vertices[rep], 0)
+
+
+def _benefit_cost(lv, rows, scene, wide, clip, cost_model, memory, t, factors):
+    """Per visible row: (v, K) benefit and cost of each level, with the F&S factors the inputs allow."""
+    lo, hi = lv.object_lo[rows], lv.object_hi[rows]
+    size = screen_size(lo, hi, clip, wide.width, wide.height)
+    rep, valid, faces, vertices = _options(lv, rows)
+    speed = None
+    if memory is not None and memory.view is not None and memory.t is not None and t is not None and t > memory.t:
+        speed = screen_speed(lo, hi, clip, memory.view.matrix(), t - memory.t, wide.width, wide.height)
+    previous = None
+    if memory is not None and memory.option is not None:
+        previous = memory.option[lv.ids[rows]] if lv.ids is not None else memory.option[rows]
+    benefit = benefit_matrix(
+        size, faces, factors=factors, vertices=vertices,
+        object_class=lv.object_class[rows] if lv.object_class is not None and scene.importance is not None else None,
+        importance_table=scene.importance,
+        offset=centre_offset(lo, hi, clip, wide.width, wide.height), speed=speed, previous=previous,
+    )
+    benefit = np.where(valid, benefit, 0.0)
+    cost = np.where(valid, cost_model.predict(vertices), np.inf)
+    return size, rep, valid, faces, benefit, cost, previous
 
 
 def select(
-    levels: Levels,
+    scene: Scene | Levels,
     view: View,
     cost_model: CostModel,
     budget: float,
     solver: str = "greedy",
     margin_deg: float = 20.0,
+    *,
+    memory: Memory | None = None,
+    t: float | None = None,
+    factors: BenefitFactors | None = None,
+    limit: Limit = NO_LIMIT,
 ) -> Choice:
-    """Choose representations for ``view`` within ``budget`` seconds.
+    """Choose representations for ``view`` within ``budget`` seconds with the solver called ``solver``.
 
     ``margin_deg`` widens the field of view so that objects about to come into
-    view during the interval are already selected.
+    view during the interval are already selected. ``memory`` (updated in place)
+    carries hysteresis, motion and solver state between runs; ``t`` is the view's
+    client time.
     """
+    if isinstance(scene, Levels):
+        scene = Scene(flat=scene, n_objects=int(scene.ids.max()) + 1 if scene.ids is not None and scene.n else scene.n)
+    factors = factors or BenefitFactors()
+    solve = solvers.get(solver)
     wide = widened(view, margin_deg)
     clip = wide.matrix()
-    visible = np.nonzero(cull_boxes(levels.object_lo, levels.object_hi, frustum_planes(clip)))[0]
-    if visible.size == 0:
-        return Choice(np.zeros(0, np.int64), 0.0, 0.0, 0, {})
-    size = screen_size(levels.object_lo[visible], levels.object_hi[visible], clip, wide.width, wide.height)
+    planes = frustum_planes(clip)
+    if solver in HIERARCHICAL:
+        if scene.hierarchy is None:
+            raise ValueError("the hierarchical solver needs the scene's hierarchical view (Scene.of)")
+        choice = _select_hierarchical(scene, wide, clip, planes, cost_model, budget, solve, memory, t, factors, limit)
+    else:
+        choice = _select_flat(scene, wide, clip, planes, cost_model, budget, solver, solve, memory, t, factors, limit)
+    if memory is not None:
+        memory.view, memory.t = wide, t
+    return choice
 
-    count = levels.rep_count[visible].astype(np.int64)
-    k = int(count.max())
-    slot = np.arange(k)[None, :]
-    valid = slot < count[:, None]
-    rep = np.where(valid, levels.rep_first[visible, None].astype(np.int64) + slot, 0)  # (v, K)
-    benefit = np.where(valid, level_benefit(size[:, None], levels.rep_faces[rep]), 0.0)
-    cost = np.where(valid, cost_model.predict(levels.rep_vertices[rep]), np.inf)
 
-    faces = np.where(valid, levels.rep_faces[rep], 0)
-    cand = solvers.Candidates.of(benefit, cost, valid, size=size, faces=faces)
-    result = solvers.get(solver)(cand, budget)
+def _remember(memory: Memory | None, scene: Scene, ids: np.ndarray, option: np.ndarray) -> None:
+    if memory is None:
+        return
+    if memory.option is None or memory.option.shape[0] != scene.n_objects:
+        memory.option = np.full(scene.n_objects, -1, np.int64)
+    memory.option[:] = -1
+    memory.option[ids] = option
+
+
+def _select_flat(scene, wide, clip, planes, cost_model, budget, solver, solve, memory, t, factors, limit) -> Choice:
+    lv = scene.flat
+    rows = np.nonzero(cull_boxes(lv.object_lo, lv.object_hi, planes))[0]
+    smooth, trees = None, np.zeros(0, np.int64)
+    if solver in MIXED:
+        smooth, trees = _smooth(scene, wide, clip, planes, cost_model)
+    if rows.size == 0 and trees.size == 0:
+        _remember(memory, scene, np.zeros(0, np.int64), np.zeros(0, np.int64))
+        return Choice(np.zeros(0, np.int64), 0.0, 0.0, 0, {"stopped": "done"})
+    size, rep, valid, faces, benefit, cost, previous = _benefit_cost(
+        lv, rows, scene, wide, clip, cost_model, memory, t, factors)
+    cand = Candidates.of(benefit, cost, valid, size=size, faces=faces,
+                         previous=None if previous is None else previous.astype(np.int64))
+    state = dict(memory.solver) if memory is not None else {}
+    if memory is not None and memory.frame_time is not None:
+        state["frame_time"] = memory.frame_time
+    state.setdefault("target", budget)
+    kw = {"smooth": smooth} if solver in MIXED else {}
+    result = solve(cand, budget, limit=limit, state=state, **kw)
     drawn = result.level >= 0
     reps = rep[drawn, result.level[drawn]]
-    return Choice(reps=reps, cost=result.cost, benefit=result.benefit, visible=int(visible.size), stats=result.stats)
+    if memory is not None:
+        # A session keeps one solver, so its threshold (Feedback's pixels, the incremental value θ) is its own.
+        threshold = result.stats.get("threshold")
+        if threshold is not None and np.isfinite(threshold):
+            memory.solver["threshold"] = float(threshold)
+        ids = lv.ids[rows] if lv.ids is not None else rows
+        _remember(memory, scene, ids[drawn], result.level[drawn])
+    stats = dict(result.stats)
+    cost_drawn = result.cost
+    if result.x is not None:
+        stats["vegetation"] = int(trees.size)
+        stats["vegetation_x_mean"] = float(result.x.mean()) if result.x.size else 0.0
+        # The client has no point-splat renderer yet: the continuous part keeps its share of the
+        # budget, but what the client is predicted to spend is the discrete part it draws.
+        cost_drawn = float(stats.get("discrete_cost", result.cost))
+    return Choice(reps=reps, cost=cost_drawn, benefit=result.benefit, visible=int(rows.size + trees.size),
+                  stats=stats, x=result.x)
+
+
+def _smooth(scene, wide, clip, planes, cost_model):
+    """The continuous part of the mixed solver: visible tree groups, resolution x ∈ [0, 1] each.
+
+    Benefit weight is the pixels a group covers (× importance); its cost at full resolution
+    is the cost model's price of all its points.
+    """
+    from .solvers.mixed import Smooth
+
+    veg = scene.vegetation
+    if veg is None or veg.n == 0:
+        return Smooth.empty(), np.zeros(0, np.int64)
+    rows = np.nonzero(cull_boxes(veg.object_lo, veg.object_hi, planes))[0]
+    if rows.size == 0:
+        return Smooth.empty(), rows
+    weight = screen_size(veg.object_lo[rows], veg.object_hi[rows], clip, wide.width, wide.height)
+    if scene.importance is not None and veg.object_class is not None:
+        weight = weight * scene.importance[veg.object_class[rows]]
+    points = veg.rep_vertices[veg.rep_first[rows] + veg.rep_count[rows] - 1]
+    slope = np.maximum(cost_model.predict(points), 1e-12)
+    return Smooth.of(weight, slope), rows
+
+
+def _select_hierarchical(scene, wide, clip, planes, cost_model, budget, solve, memory, t, factors, limit) -> Choice:
+    from .solvers.hierarchical import Forest
+
+    lv = scene.hierarchy
+    visible = cull_hierarchy(lv.parent, lv.object_lo, lv.object_hi, planes)
+    rows = np.nonzero(visible)[0]
+    if rows.size == 0:
+        _remember(memory, scene, np.zeros(0, np.int64), np.zeros(0, np.int64))
+        return Choice(np.zeros(0, np.int64), 0.0, 0.0, 0, {"stopped": "done"})
+    _, rep_v, valid_v, _, benefit_v, cost_v, _ = _benefit_cost(lv, rows, scene, wide, clip, cost_model, memory, t, factors)
+    # The forest spans every node; culled ones keep their levels (for shape checks) but are never cut.
+    rep, valid, _, vertices = _options(lv, np.arange(lv.n))
+    k = valid.shape[1]
+    benefit = np.zeros(valid.shape)
+    cost = np.where(valid, cost_model.predict(vertices), 0.0)
+    kv = benefit_v.shape[1]
+    benefit[rows, :kv] = benefit_v
+    cost[rows, :kv] = np.where(valid_v, cost_v, 0.0)
+    forest = Forest.of(lv.parent, benefit, cost, valid, visible)
+    result = solve(forest, budget, limit=limit, state=dict(memory.solver) if memory is not None else {})
+    node = np.nonzero(result.level >= 0)[0]
+    reps = rep[node, result.level[node]] if k else np.zeros(0, np.int64)
+    _remember(memory, scene, lv.ids[node], result.level[node])
+    return Choice(reps=reps.astype(np.int64), cost=result.cost, benefit=result.benefit, visible=int(rows.size),
+                  stats=dict(result.stats))
