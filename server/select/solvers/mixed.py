@@ -238,6 +238,7 @@ def solve(
     iterations: int = 10_000,
     band: int | None = None,
     split_eps: float | None = None,
+    direction: str = "newton",
     **opts,
 ) -> Result:
     """Select discrete options and smooth resolutions sharing one budget (Zach, Mantler & Karner 2002).
@@ -251,10 +252,19 @@ def solve(
     split_eps  : Appendix A's root threshold on benefit lost by a shared variable
                  (default 1e-3 × Σ weight); it shrinks by 4 per quadtree level
     state      : unused (no memory across frames yet); accepted for the solver contract
+    direction  : "newton" (this module's band steps) or "barrier" (the paper's own barrier
+                 gradient ascent, ``mixed_gradient``; each object its own variable)
     Every iteration ends feasible; ``limit.expired()`` is checked between them.
     Result.level: option per discrete object (−1 not drawn); Result.x: resolution per smooth object.
     """
     smooth = Smooth.empty() if smooth is None else smooth
+    if direction == "barrier":
+        from . import mixed_gradient
+
+        return mixed_gradient.solve(cand, budget, smooth=smooth, limit=limit, iterations=iterations,
+                                    **{k: v for k, v in opts.items() if k in ("barrier", "x_floor")})
+    if direction != "newton":
+        raise ValueError(f"direction must be 'newton' or 'barrier', not {direction!r}")
     budget = float(budget)
     n = cand.n
     m = smooth.m
@@ -474,6 +484,15 @@ def solve(
                     xg[sel] = xn
                     x = xg[inv]
 
+    stats.update(stopped=stopped, price=price, variables=int(np.unique(tree.anc[gdepth, rows]).size) if m else 0)
+    return _finish(cand, budget, (obj, opt, chain, taken), (w, s, f, p), x, active, stats)
+
+
+def _finish(cand: Candidates, budget: float, steps, smooth, x, active, stats) -> Result:
+    """The Result of taken increments and resolutions, trimmed of the bisections' float slack."""
+    obj, opt, chain, taken = steps
+    w, s, f, p = smooth
+    n = cand.n
     level = np.full(n, -1, np.int64)
     if taken.any():
         best = np.full(n, -1, np.int64)
@@ -492,6 +511,5 @@ def solve(
         x = x * min(1.0, scale)
         cost_c = float(np.dot(f, active) + np.dot(s, x))
     ben_c = float(np.dot(w, np.where(active, x, 0.0) ** p))
-    stats.update(stopped=stopped, price=price, variables=int(np.unique(tree.anc[gdepth, rows]).size) if m else 0,
-                 continuous_cost=cost_c, discrete_cost=cost_d)
+    stats.update(continuous_cost=cost_c, discrete_cost=cost_d)
     return Result(level=level, cost=cost_d + cost_c, benefit=ben_d + ben_c, stats=stats, x=x)
