@@ -147,15 +147,17 @@ def run_demo(
     viewport: tuple[int, int],
     out: Path,
     on_frame: Callable | None = None,
+    solver: str = "greedy",
 ):
     """Serve ``store``, run the client over the tour, return (run, summary, chart path)."""
     from client.app import run_client
 
     with ServerProcess([store]) as server:
         run = run_client(
-            server.url, scene, duration=duration, viewport=viewport, target_frame_time=target, on_frame=on_frame
+            server.url, scene, duration=duration, viewport=viewport, target_frame_time=target, on_frame=on_frame,
+            solver=solver,
         )
     summary = summarize(run, target)
-    chart = write_chart(run, target, out / "demo-frames.png", title=f"walkstream demo — {scene}, target {target * 1e3:.0f} ms")
+    chart = write_chart(run, target, out / "demo-frames.png", title=f"walkstream demo — {scene}, {solver}, target {target * 1e3:.0f} ms")
     return run, summary, chart
 

@@ -37,6 +37,9 @@ def test_bad_arguments_fail_with_a_clear_message(tmp_path):
     assert done.returncode == 2 and "--grid" in said and "sthelens" in said and not (tmp_path / "x.db").exists()
     done = _walkstream("serve", str(tmp_path / "missing.db"))
     assert done.returncode == 2 and "no such store" in done.stderr
+    done = _walkstream("client", "--solver", "fastest")
+    said = " ".join(done.stderr.replace("│", " ").split())
+    assert done.returncode == 2 and "unknown solver 'fastest'" in said and "hierarchical" in said
     not_a_store = tmp_path / "text.db"
     not_a_store.write_text("hello")
     done = _walkstream("serve", str(not_a_store), "--port", "0")
@@ -45,12 +48,14 @@ def test_bad_arguments_fail_with_a_clear_message(tmp_path):
 
 def test_demo_json_reports_the_loop(demo_store, tmp_path):
     done = _walkstream("demo", "--store", str(demo_store), "--duration", "4", "--target-ms", "12",
-                       "--width", "320", "--height", "180", "--json", "--out", str(tmp_path))
+                       "--width", "320", "--height", "180", "--json", "--out", str(tmp_path),
+                       "--solver", "optimization")
     assert done.returncode == 0, done.stderr
     figures = json.loads(done.stdout.strip().splitlines()[-1])
     for key in ("frames", "target_ms", "mean_ms", "p95_ms", "max_ms", "cost_coeff", "chart"):
         assert key in figures
     assert figures["frames"] > 10 and figures["target_ms"] == 12.0 and figures["errors"] == 0
+    assert figures["solver"] == "optimization"
     assert Path(figures["chart"]).stat().st_size > 10_000  # a PNG with a plot in it
     assert "frames" in done.stderr and "c_vertex" in done.stderr  # the per-second lines
 
