@@ -195,6 +195,12 @@ def _measure(n: int, levels: int, repeats: int, seed: int, exact_max: int, refer
     t, r = _median_time(lambda: greedy(cand, budget), repeats)
     row.update(greedy_ms=t * 1e3, greedy_benefit=r.benefit, greedy_cost=r.cost,
                greedy_feasible=bool(r.cost <= budget * (1 + 1e-9)))
+    # The same greedy in numpy passes: what the compiled kernels are measured against.
+    from server.select.solvers import greedy as greedy_module
+
+    t_np, r_np = _median_time(lambda: greedy_module.solve_numpy(cand, budget), repeats)
+    row.update(greedy_numpy_ms=t_np * 1e3, kernels_speedup=_ratio(t_np, t),
+               numpy_agrees=bool(abs(r_np.benefit - r.benefit) <= 1e-9 * max(abs(r.benefit), 1.0)))
 
     tick("coherent")
     nxt = moved(cand, r.level, seed)
@@ -251,10 +257,11 @@ def _fmt(v, spec: str, none: str = "—") -> str:
 
 def _lines(result: dict) -> list[str]:
     lines = [f"bench select: {result['levels']} levels, median of {result['repeats']} after a warm-up, "
-             f"seed {result['seed']}, budget {BUDGET_FRACTION:.0%} of full detail, {result['machine']['cpus']} CPUs"]
+             f"seed {result['seed']}, budget {BUDGET_FRACTION:.0%} of full detail, {result['machine']['cpus']} CPUs, "
+             f"kernels {result['kernels']} (ready in {result['kernels_warm_s']:.1f} s)"]
     for r in result["sizes"]:
         lines.append(
-            f"{r['objects']:>9,} objects  greedy {r['greedy_ms']:8.2f} ms  coherent {r['coherent_ms']:7.2f} ms "
+            f"{r['objects']:>9,} objects  greedy {r['greedy_ms']:8.2f} ms (numpy {r['greedy_numpy_ms']:.2f})  coherent {r['coherent_ms']:7.2f} ms "
             f"(scratch {r['coherent_greedy_ms']:.2f}, {_fmt(r['coherent_rounds'], 'd')} rounds)  "
             f"greedy/exact {_fmt(r['greedy_vs_exact'], '.6f')}  greedy/LP {_fmt(r['greedy_vs_lp'], '.6f')}  "
             f"optimization/LP {_fmt(r['optimization_vs_lp'], '.6f')}  reference "
@@ -285,6 +292,11 @@ def run(sizes=(1_000, 10_000, 100_000, 1_000_000), levels: int = 4, repeats: int
     if not sizes or min(sizes) < 1 or levels < 1 or repeats < 1:
         raise ValueError("sizes, levels and repeats must be positive")
     parts = ("greedy", "coherent", "bounds", "exact", "reference")
+    from server.select.solvers import greedy as greedy_module
+
+    t0 = time.perf_counter()
+    compiled = greedy_module.warm_up()  # time the solvers as a warm server runs them, not while numba compiles
+    warm_s = time.perf_counter() - t0
     rows = []
     for n in sizes:
         stage = f"{n:,} objects"
@@ -299,6 +311,7 @@ def run(sizes=(1_000, 10_000, 100_000, 1_000_000), levels: int = 4, repeats: int
     import numpy
 
     result = {"levels": levels, "repeats": repeats, "seed": seed, "budget_fraction": BUDGET_FRACTION,
+              "kernels": "numba" if compiled else "numpy", "kernels_warm_s": warm_s,
               "c_vertex": C_VERTEX, "c_draw": C_DRAW, "size_noise": SIZE_NOISE, "turnover": TURNOVER,
               "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "numpy": numpy.__version__},
               "sizes": rows, "goals": _goals(rows)}

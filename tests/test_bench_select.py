@@ -92,8 +92,10 @@ def test_run_returns_every_figure():
         "objects", "budget_s", "greedy_ms", "greedy_benefit", "coherent_ms", "coherent_greedy_ms",
         "optimization_benefit", "lp_bound", "greedy_vs_lp", "optimization_vs_lp", "exact_benefit",
         "greedy_vs_exact", "optimization_vs_exact", "reference_ms", "reference_benefit", "speedup_vs_reference",
+        "greedy_numpy_ms", "kernels_speedup",
     ])
-    assert row["greedy_feasible"] and row["optimization_feasible"]
+    assert row["greedy_feasible"] and row["optimization_feasible"] and row["numpy_agrees"]
+    assert result["kernels"] in ("numba", "numpy") and result["kernels_warm_s"] >= 0
     assert 0.5 <= row["greedy_vs_exact"] <= 1 + 1e-9 and 0.5 <= row["optimization_vs_exact"] <= 1 + 1e-9
     assert row["exact_benefit"] <= row["lp_bound"] * (1 + 1e-9)
     assert row["reference_benefit"] == pytest.approx(row["greedy_benefit"], rel=1e-3)

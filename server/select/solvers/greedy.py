@@ -21,6 +21,9 @@ with the best single option, which keeps the factor-two guarantee.
 
 from __future__ import annotations
 
+import atexit
+import os
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,7 +31,8 @@ import numpy as np
 from .candidates import NO_LIMIT, Candidates, Limit
 from .result import Result
 
-__all__ = ["Hull", "upper_hull", "cut", "fill", "threshold", "solve"]
+__all__ = ["Hull", "upper_hull", "cut", "fill", "threshold", "solve", "warm_up", "use_kernels",
+           "upper_hull_numpy", "fill_numpy", "solve_numpy"]
 
 _SAMPLE = 8192  # sample size that brackets the value threshold
 _MARGIN = 128  # sample positions either side of the estimated threshold (about 3 standard deviations)
@@ -52,7 +56,8 @@ class Hull:
     count: np.ndarray
     opt: np.ndarray | None
     cand: Candidates
-    ok: np.ndarray  # (n, K) the usable options the hull was built from
+    ok: np.ndarray | None = None  # (n, K) the usable options the hull was built from (None: not kept)
+    best: int | None = None  # flat index i·K + o of the best single usable option (−1: none; None: unknown)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -83,6 +88,75 @@ def _usable(cand: Candidates, cap: float | None) -> np.ndarray:
 
 def upper_hull(cand: Candidates, cap: float | None = None) -> Hull:
     """The hull of every object's usable options (valid, cost > 0, cost ≤ ``cap`` if given).
+
+    One compiled pass per object when the kernels are ready (``hull.ok`` is then None and
+    ``hull.best`` the best single option), else ``upper_hull_numpy``.
+    """
+    k_ = _kernels_now()
+    if k_ is None:
+        return upper_hull_numpy(cand, cap)
+    return _hull_compiled(k_, cand, cap)
+
+
+def _hull_compiled(k_, cand: Candidates, cap: float | None, *, scratch: bool = False,
+                   previous: np.ndarray | None = None) -> Hull:
+    """The compiled hull; with ``scratch`` its arrays are this thread's reusable buffers (valid until the
+    next scratch hull: for a solver's own use) and it carries ``begin`` (the start on the hull of
+    ``previous``), ``hist`` and ``total`` for the radix cut."""
+    b, c = _c64(cand.benefit), _c64(cand.cost)
+    valid = np.ascontiguousarray(cand.valid, bool).view(np.uint8)
+    n, k = b.shape
+    opt_dtype = np.int16 if k < 2**15 else np.int64
+    if scratch:
+        sp = _scratch(n, k, opt_dtype, k_.RADIX_BINS)
+        value, d_cost, opt, count = sp["value"], sp["d_cost"], sp["opt"], sp["count"]
+        begin, hist = sp["begin"], sp["hist"]
+    else:
+        value, d_cost = np.empty((k, n)), np.empty((k, n))
+        opt, count = np.empty((k, n), opt_dtype), np.empty(n, np.int64)
+        begin, hist = np.empty(0, np.int64), np.empty(0)
+    prev = _NO_PREVIOUS if previous is None else previous
+    best, total = k_.hull(b, c, valid, np.inf if cap is None else float(cap), prev, value, value.view(np.int64),
+                          d_cost, opt, count, begin, hist)
+    h = Hull(value, d_cost, count, opt, cand, None, int(best))
+    if scratch:
+        h.begin, h.hist, h.total = begin, hist, float(total)
+        h.steps, h.ready = sp["steps"], sp["ready"]
+    return h
+
+
+_NO_PREVIOUS = np.empty(0, np.int64)
+_pool = threading.local()
+
+
+def _scratch(n: int, k: int, opt_dtype, bins: int) -> dict:
+    """This thread's scratch arrays for n objects × k options, grown as needed and reused: on this machine
+    touching fresh pages costs more than the arithmetic of a solve."""
+    have = getattr(_pool, "arrays", None)
+    if have is None or have["n"] < n or have["k"] < k or have["opt"].dtype != opt_dtype:
+        cap_n = max(n, have["n"] if have is not None else 0)
+        cap_k = max(k, have["k"] if have is not None else 0)
+        have = {"n": cap_n, "k": cap_k, "value": np.empty(cap_n * cap_k), "d_cost": np.empty(cap_n * cap_k),
+                "opt": np.empty(cap_n * cap_k, opt_dtype), "count": np.empty(cap_n, np.int64),
+                "begin": np.empty(cap_n, np.int64), "steps": np.empty(cap_n, np.int64),
+                "ready": np.empty(cap_n, np.int64), "hist": np.empty(bins), "nxt_v": np.empty(cap_n),
+                "nxt_c": np.empty(cap_n), "band_f": np.empty((6, max(1024, cap_n // 4))),
+                "band_i": np.empty((3, max(1024, cap_n // 4)), np.int64)}
+        _pool.arrays = have
+    out = {name: have[name][: k * n].reshape(k, n) for name in ("value", "d_cost", "opt")}
+    out.update({name: have[name][:n] for name in ("count", "begin", "steps", "ready", "nxt_v", "nxt_c")},
+               hist=have["hist"], band_f=have["band_f"], band_i=have["band_i"])
+    if n == 0 or k == 0:
+        out["begin"] = np.zeros(n, np.int64)
+    return out
+
+
+def _c64(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, np.float64)
+
+
+def upper_hull_numpy(cand: Candidates, cap: float | None = None) -> Hull:
+    """The vectorised reference of ``upper_hull`` (same hulls; ``ok`` kept).
 
     Objects whose options are already sorted by cost with falling values (the usual
     concave levels) take a fast path of a few passes per column; the others are
@@ -226,8 +300,33 @@ def fill(hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_roun
 
     Returns (rounds, stopped); ``steps`` is updated in place. Only objects whose
     next increment fits are looked at, and the remaining budget only shrinks, so
-    the set shrinks every round.
+    the set shrinks every round. The limit is checked before every round.
     """
+    k_ = _kernels_now()
+    if k_ is None or steps.dtype != np.int64 or not steps.flags.c_contiguous:
+        return fill_numpy(hull, steps, remaining, limit, max_rounds)
+    return _fill_compiled(k_, hull, steps, float(remaining), limit, max_rounds)
+
+
+def _fill_compiled(k_, hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_rounds: int,
+                   idx: np.ndarray | None = None):
+    """``fill`` on a compiled hull; ``idx``: the objects ready for the first round, if known."""
+    value, d_cost, count = hull.value, hull.d_cost, np.ascontiguousarray(hull.count, np.int64)
+    if idx is None:
+        idx = k_.ready(value, d_cost, count, steps, remaining)
+    rounds = 0
+    while idx.size and rounds < max_rounds:
+        if limit.expired():
+            return rounds, "limit"
+        idx, remaining, took = k_.fill_round(value, d_cost, count, steps, idx, remaining)
+        if took == 0:
+            break
+        rounds += 1
+    return rounds, "done"
+
+
+def fill_numpy(hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_rounds: int):
+    """The vectorised reference of ``fill`` (same rounds, same increments)."""
     k, n = hull.shape
     vflat, cflat = hull.value.ravel(), hull.d_cost.ravel()
     at = np.minimum(steps, k - 1) * n + np.arange(n)
@@ -287,17 +386,64 @@ def solve(
 
     max_rounds : bound on the fill rounds after the cut (anytime: every round is feasible)
     Returns a ``Result`` whose ``level`` is the option index, −1 for objects left undrawn.
+    Compiled (one pass for the hulls, one radix cut, the fill rounds, one pass for the
+    totals) once the kernels are ready; ``solve_numpy`` until then (the same greedy).
     """
     n = cand.n
     if n == 0 or cand.k == 0 or not budget > 0:
-        return Result(np.full(n, -1, dtype=np.int64), 0.0, 0.0,
-                      {"stopped": "done", "increments": 0, "rounds": 0, "candidates": 0, "threshold": None})
-    hull = upper_hull(cand, budget)
+        return _nothing(n)
+    k_ = _kernels_now()
+    if k_ is None:
+        return solve_numpy(cand, budget, limit=limit, state=state, max_rounds=max_rounds)
+    hull = _hull_compiled(k_, cand, budget, scratch=True)
+    begin = hull.begin
+    begin[:] = 0
+    spent, _, _, nr = k_.radix_cut(hull.value, hull.value.view(np.int64), hull.d_cost, hull.count, begin, 1.0,
+                                   float(budget), hull.hist, hull.total, hull.steps, hull.ready)
+    steps = hull.steps
+    rounds, stopped = _fill_compiled(k_, hull, steps, float(budget) - spent, limit, max_rounds, hull.ready[:nr])
+    return _finish_compiled(k_, cand, budget, hull, steps, {"stopped": stopped, "rounds": rounds})
+
+
+def _nothing(n: int) -> Result:
+    return Result(np.full(n, -1, dtype=np.int64), 0.0, 0.0,
+                  {"stopped": "done", "increments": 0, "rounds": 0, "candidates": 0, "threshold": None})
+
+
+def _finish_compiled(k_, cand: Candidates, budget: float, hull: Hull, steps: np.ndarray, stats: dict) -> Result:
+    """The chosen options and their totals, the best-single check, and the stats every greedy reports."""
+    level, cost, benefit, incs, cands, left = k_.finish(_c64(cand.benefit), _c64(cand.cost), hull.opt, hull.value,
+                                                         hull.count, steps)
+    single = False
+    if hull.best is not None and hull.best >= 0:
+        top = float(cand.benefit.flat[hull.best])
+        if top > benefit:
+            level = np.full(cand.n, -1, dtype=np.int64)
+            level[hull.best // cand.k] = hull.best % cand.k
+            cost, benefit, single = float(cand.cost.flat[hull.best]), top, True
+    stats.update(increments=int(incs), candidates=int(cands), single=single,
+                 threshold=float(left) if np.isfinite(left) and left > 0 else None)
+    return Result(level, float(cost), float(benefit), stats)
+
+
+def solve_numpy(
+    cand: Candidates,
+    budget: float,
+    *,
+    limit: Limit = NO_LIMIT,
+    state: dict | None = None,
+    max_rounds: int = 64,
+) -> Result:
+    """The vectorised reference of ``solve``: the same greedy in numpy passes."""
+    n = cand.n
+    if n == 0 or cand.k == 0 or not budget > 0:
+        return _nothing(n)
+    hull = upper_hull_numpy(cand, budget)
     taken = cut(hull.value.ravel(), hull.d_cost.ravel(), budget)
     # Along an object the values fall strictly, so the taken increments are a prefix of its hull.
     steps = taken.reshape(hull.shape).sum(axis=0)
     spent = float((hull.d_cost.ravel() * taken).sum())
-    rounds, stopped = fill(hull, steps, budget - spent, limit, max_rounds)
+    rounds, stopped = fill_numpy(hull, steps, budget - spent, limit, max_rounds)
     level = hull.chosen(steps)
     cost, benefit = totals(cand, level)
     level, cost, benefit, single = best_single(cand, budget, level, cost, benefit, hull.ok)
@@ -317,3 +463,79 @@ def threshold(hull: Hull, steps: np.ndarray) -> float | None:
     nxt = nxt[steps < hull.count]
     top = float(nxt.max()) if nxt.size else -np.inf
     return top if np.isfinite(top) and top > 0 else None
+
+
+# ----------------------------------------------------------------------------- compiled kernels
+#
+# The kernels (``_kernels``, numba) compile on first use: 8–25 s on this 2-core machine without a
+# cache, ~0.5 s to load from it. So that no selection waits for that, importing this module starts a daemon thread
+# that imports numba and compiles (or loads) them; until it is done the solvers run their numpy
+# reference. ``warm_up()`` waits for it; ``use_kernels`` forces one path (tests, benchmarks).
+# WALKSTREAM_NUMBA=0 in the environment turns the kernels off, WALKSTREAM_NUMBA=wait makes the first
+# solve wait for them (benchmarks, tests of the compiled path).
+
+_mode: bool | None = None  # None: kernels once warm; True: always (waits for the compile); False: never
+_kern = None  # the _kernels module once warmed up
+_warm_error: BaseException | None = None
+_warm_done = threading.Event()
+_warm_thread: threading.Thread | None = None
+
+
+def _warm() -> None:
+    global _kern, _warm_error
+    try:
+        from . import _kernels
+
+        _kernels.warm_up()
+        _kern = _kernels
+    except Exception as e:  # numba missing or broken: the numpy reference stays in charge
+        _warm_error = e
+    finally:
+        _warm_done.set()
+
+
+def _start_warm_up() -> None:
+    global _warm_thread
+    if _warm_thread is None and os.environ.get("WALKSTREAM_NUMBA", "1") not in ("0", "false", "no", "off"):
+        _warm_thread = threading.Thread(target=_warm, name="walkstream-numba-warm-up", daemon=True)
+        _warm_thread.start()
+        atexit.register(_join_warm_up)
+    elif _warm_thread is None:
+        _warm_done.set()
+
+
+def _join_warm_up() -> None:
+    # Let a compile in progress end before the interpreter tears down (LLVM in a dying thread).
+    if _warm_thread is not None:
+        _warm_thread.join(timeout=30.0)
+
+
+def warm_up(timeout: float | None = None) -> bool:
+    """Wait until the compiled kernels are ready (at most ``timeout`` s); True if they are in use."""
+    _start_warm_up()
+    _warm_done.wait(timeout)
+    return _kern is not None
+
+
+def use_kernels(flag: bool | None) -> None:
+    """Force the compiled kernels (True: waits for the compile), the numpy reference (False),
+    or go back to the default (None: kernels as soon as they are warm)."""
+    global _mode
+    _mode = flag
+    if flag:
+        if not warm_up():
+            raise RuntimeError(f"compiled kernels unavailable: {_warm_error!r}")
+
+
+def _kernels_now():
+    """The kernels module if the solvers should use it for this call, else None."""
+    if _mode is False:
+        return None
+    if _mode is True and _kern is None:
+        warm_up()
+    return _kern
+
+
+_start_warm_up()
+if os.environ.get("WALKSTREAM_NUMBA", "") == "wait":
+    _mode = True
