@@ -628,49 +628,8 @@ def coherent(benefit, cost, valid, cap, previous, theta, width, capacity, keep, 
                     break
                 top += 1
                 sc[top], sb[top], ss[top], so[top] = c, b, sl, o
-        else:  # _object_hull's general part, inline (a call costs more than the object's hull)
-            bo, bb = -1, -np.inf
-            m_ = 0
-            ascending = True
-            last = -np.inf
-            for o in range(k):
-                c = cost[i, o]
-                b = benefit[i, o]
-                if valid[i, o] and c > 0.0 and c <= cap and c < np.inf and math.isfinite(b):
-                    if b > bb:
-                        bo, bb = o, b
-                    if c < last:
-                        ascending = False
-                    last = max(last, c)
-                    order[m_] = o
-                    m_ += 1
-            if not ascending:
-                for q in range(1, m_):
-                    o = order[q]
-                    c = cost[i, o]
-                    p = q
-                    while p > 0 and cost[i, order[p - 1]] > c:
-                        order[p] = order[p - 1]
-                        p -= 1
-                    order[p] = o
-            top = 0
-            for q in range(m_):
-                o = order[q]
-                c, b = cost[i, o], benefit[i, o]
-                if b <= sb[top]:
-                    continue
-                sl = np.inf
-                while True:
-                    if c == sc[top]:
-                        top -= 1
-                        continue
-                    sl = (b - sb[top]) / (c - sc[top])
-                    if top >= 1 and ss[top] <= sl:
-                        top -= 1
-                        continue
-                    break
-                top += 1
-                sc[top], sb[top], ss[top], so[top] = c, b, sl, o
+        else:  # options unusable or out of cost order: the general hull (inlined by numba)
+            top, bo, bb = _object_hull(benefit, cost, valid, cap, i, order, sc, sb, ss, so)
         if bb > best_b:
             best, best_b = i * k + bo, bb
         cands += top
