@@ -118,7 +118,7 @@ def test_cli_prints_the_figures_as_json():
     done = subprocess.run([sys.executable, "-m", "bench.cli", "bench", "select", "--sizes", "300", "--repeats", "1",
                            "--json"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    figures = json.loads(done.stdout.strip().splitlines()[-1])
+    figures = json.loads(done.stdout)  # stdout is the JSON alone: no solver banner before it
     (row,) = figures["sizes"]
     assert row["objects"] == 300 and "lines" not in figures
     _figures_finite(row, ["greedy_ms", "coherent_ms", "greedy_vs_exact", "greedy_vs_lp", "speedup_vs_reference"])
