@@ -132,48 +132,10 @@ def hull(benefit, cost, valid, cap, previous, value, bits, d_cost, opt, count, b
                     st += point <= c_prev
                 begin[i] = st
             continue
-        m = 0
-        ascending = True
-        last = -np.inf
-        for o in range(k):
-            c = cost[i, o]
-            b = benefit[i, o]
-            if valid[i, o] and c > 0.0 and c <= cap and c < np.inf and math.isfinite(b):
-                if b > best_b:
-                    best, best_b = i * k + o, b
-                if c < last:
-                    ascending = False
-                last = max(last, c)
-                order[m] = o
-                m += 1
-        if not ascending:
-            for q in range(1, m):  # insertion sort by cost, stable
-                o = order[q]
-                c = cost[i, o]
-                p = q
-                while p > 0 and cost[i, order[p - 1]] > c:
-                    order[p] = order[p - 1]
-                    p -= 1
-                order[p] = o
-        sc[0], sb[0], ss[0], so[0] = 0.0, 0.0, np.inf, -1
-        top = 0
-        for q in range(m):
-            o = order[q]
-            c, b = cost[i, o], benefit[i, o]
-            if b <= sb[top]:
-                continue  # costs no less, gives no more
-            s = np.inf
-            while True:
-                if c == sc[top]:  # top ≥ 1 (costs are > 0): as dear and better, it goes
-                    top -= 1
-                    continue
-                s = (b - sb[top]) / (c - sc[top])
-                if top >= 1 and ss[top] <= s:
-                    top -= 1  # on or under the chord: never worth stopping at
-                    continue
-                break
-            top += 1
-            sc[top], sb[top], ss[top], so[top] = c, b, s, o
+        # Options unusable or out of cost order: the general hull (numba inlines it).
+        top, bo, bb = _object_hull(benefit, cost, valid, cap, i, order, sc, sb, ss, so)
+        if bb > best_b:
+            best, best_b = i * k + bo, bb
         count[i] = top
         for j in range(top):
             dc = sc[j + 1] - sc[j]
