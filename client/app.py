@@ -6,8 +6,13 @@ main loop never sleeps: between frames it waits on that queue until the next
 frame is due, so a delta that arrives while the client is idle is decoded and
 uploaded then — always outside the timed fence of a frame.
 
-Per frame, in order: pose for ``t`` → ``Camera`` → apply queued deltas → draw
-the current selection (fenced) → ``FrameReport`` → ``FrameRecord``.
+Per frame, in order: pose for ``t`` → ``Camera`` → apply queued deltas → the
+schedule's representations and morph weights for ``t`` → draw them (fenced) →
+``FrameReport`` → ``FrameRecord``.
+
+The receiver thread answers a ``ping`` at once with a ``pong`` (the server
+measures the round trip and this clock's offset from it) and stamps each delta
+with its arrival time, which the main loop acks once the delta is applied.
 """
 
 from __future__ import annotations
@@ -19,17 +24,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence, Union
 
+import numpy as np
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 from websockets.sync.client import ClientConnection, connect
 
 from proto.camera import NEAR, far_plane
 from proto.codec import decode_server, encode
 from proto.errors import ProtocolError
-from proto.messages import PROTOCOL_VERSION, Camera, Delta, Error, FrameReport, Hello, Welcome
+from proto.messages import PROTOCOL_VERSION, Ack, Camera, Delta, Error, FrameReport, Hello, Ping, Pong, Welcome
 
 from .cache import ResidentCache
 from .navigation import Tour
 from .renderer import Renderer
+from .schedule import Schedule
 
 __all__ = ["ClientError", "ClientRun", "FrameRecord", "run_client"]
 
@@ -60,6 +67,18 @@ class FrameRecord:
     budget: float
     predicted_cost: float
     upload_time: float = 0.0
+    morphs: int = 0
+
+
+@dataclass(frozen=True)
+class FrameTrace:
+    """What one frame drew, per object: keys (level-0 rep ids), continuous levels, reps and morph weights."""
+
+    t: float
+    key: "np.ndarray"
+    level: "np.ndarray"
+    rep: "np.ndarray"
+    weight: "np.ndarray"
 
 
 @dataclass
@@ -68,7 +87,10 @@ class ClientRun:
 
     errors : ``Error`` frames from the server, plus server frames this client could not decode
     rejected : geometry payloads the client refused (their reps were never resident)
-    skipped : selected reps left undrawn because they were not resident
+    skipped : per frame, scheduled representations left undrawn because they were not resident (summed)
+    late : schedules that arrived after their window opened (rebased so nothing jumped)
+    unmorphed : morphing draws made at full detail for want of morph targets
+    trace : with ``trace=True``, every frame's drawn levels and weights
     close_reason : why the connection ended early, ``None`` if the client ended it
     """
 
@@ -80,6 +102,10 @@ class ClientRun:
     rejected: list[ProtocolError] = field(default_factory=list)
     skipped: int = 0
     close_reason: str | None = None
+    late: int = 0
+    unmorphed: int = 0
+    pings: int = 0
+    trace: list[FrameTrace] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -87,23 +113,41 @@ class _Closed:
     reason: str
 
 
-_Item = Union[Delta, Error, Welcome, _Closed]
+@dataclass(frozen=True)
+class _Arrived:
+    delta: Delta
+    t: float  # client time of arrival
+
+
+_Item = Union[_Arrived, Error, Welcome, _Closed]
 
 
 def _as_error(exc: ProtocolError, what: str) -> Error:
     return Error(code=exc.code, message=f"{what}: {exc.message}"[:4096])
 
 
-def _receive(ws: ClientConnection, inbox: "queue.Queue[_Item]", counter: list[int]) -> None:
-    """Background thread: frames → decoded messages on ``inbox``; ends with a ``_Closed``."""
+def _receive(ws: ClientConnection, inbox: "queue.Queue[_Item]", counter: list[int], start: float) -> None:
+    """Background thread: frames → decoded messages on ``inbox``; pings answered here, at once.
+
+    Ends with a ``_Closed``. ``start`` is the client clock's origin (monotonic s).
+    """
     reason = "server closed the connection"
     try:
         for data in ws:
+            arrived = time.monotonic() - start
             counter[0] += len(data)
             try:
-                inbox.put(decode_server(data))  # type: ignore[arg-type]
+                msg = decode_server(data)  # type: ignore[arg-type]
             except ProtocolError as exc:
                 inbox.put(_as_error(exc, "client could not decode a server frame"))
+                continue
+            if isinstance(msg, Ping):
+                counter[1] += 1
+                ws.send(encode(Pong(id=msg.id, sent=msg.sent, t=time.monotonic() - start)))
+            elif isinstance(msg, Delta):
+                inbox.put(_Arrived(msg, arrived))
+            else:
+                inbox.put(msg)
     except ConnectionClosed as exc:
         reason = f"connection lost: {exc}"
     except Exception as exc:  # a local bug in the receiver must still end the run
@@ -135,24 +179,34 @@ def _handshake(ws: ClientConnection, hello: Hello, timeout: float) -> tuple[Welc
 class _Loop:
     """The main loop's state: cache, renderer, inbox and the run being recorded."""
 
-    def __init__(self, run: ClientRun, renderer: Renderer, inbox: "queue.Queue[_Item]") -> None:
-        self.run, self.renderer, self.inbox = run, renderer, inbox
+    def __init__(self, run: ClientRun, renderer: Renderer, inbox: "queue.Queue[_Item]",
+                 ws: ClientConnection | None = None) -> None:
+        self.run, self.renderer, self.inbox, self.ws = run, renderer, inbox, ws
         self.cache = ResidentCache()
+        self.schedule = Schedule()
+        self.vegetation = Schedule(continuous=True)
         self.last: Delta | None = None
         self.upload_time = 0.0
         self.closed = False
 
     def handle(self, item: _Item) -> None:
-        if isinstance(item, Delta):
+        if isinstance(item, _Arrived):
+            delta = item.delta
             self.run.deltas_received += 1
             t0 = time.perf_counter()
-            to_upload, to_free = self.cache.apply(item)
+            to_upload, to_free = self.cache.apply(delta)
             for rep in to_free:
                 self.renderer.free(rep)
             for rep, geometry in to_upload:
                 self.renderer.upload(rep, geometry, object_id=self.cache.resident[rep].object)
+            self._schedule(delta, item.t)
             self.upload_time += time.perf_counter() - t0
-            self.last = item
+            self.last = delta
+            if self.ws is not None:
+                try:
+                    self.ws.send(encode(Ack(seq=delta.seq, t=item.t, rejected=self.cache.last_rejected)))
+                except ConnectionClosed as exc:
+                    self.closed, self.run.close_reason = True, f"connection lost while acking: {exc}"
         elif isinstance(item, Error):
             self.run.errors.append(item)
         elif isinstance(item, _Closed):
@@ -160,6 +214,41 @@ class _Loop:
             self.run.close_reason = item.reason
         else:
             self.run.errors.append(Error(code="bad_state", message=f"unexpected {item.type} during the session"))
+
+    def _schedule(self, delta: Delta, arrived: float) -> None:
+        """Hand the delta's schedule to the executors and build the morph targets it will draw."""
+        reps, levels = self.cache.levels(delta.selection)
+        m = delta.morphs
+        to = np.asarray(m.level_to, np.float64)
+        key = np.asarray(m.rep, np.int64) - to.astype(np.int64)
+        start = delta.t0 if delta.start is None else delta.start
+        late = self.schedule.apply(start, delta.t0, reps - levels.astype(np.int64), levels,
+                                   (key, np.asarray(m.level_from), to, np.asarray(m.t0), np.asarray(m.t1)),
+                                   reset=delta.reset or delta.start is None, now=arrived)
+        self.run.late += int(late)
+        r = delta.ramps
+        self.vegetation.apply(start, delta.t0, np.asarray(delta.vegetation, np.int64), np.asarray(delta.resolution),
+                              (np.asarray(r.rep, np.int64), np.asarray(r.level_from), np.asarray(r.level_to),
+                               np.asarray(r.t0), np.asarray(r.t1)),
+                              reset=delta.reset or delta.start is None, now=arrived)
+        # Every level a ramp passes through is drawn morphed from the one below it.
+        lo = np.minimum(np.asarray(m.level_from), to)
+        hi = np.maximum(np.asarray(m.level_from), to)
+        for k0, a, b in zip(key.tolist(), lo.tolist(), hi.tolist()):
+            for level in range(int(a) + 1, int(b) + 1):
+                rep = k0 + level
+                if rep in self.cache and not self.renderer.has_morph_target(rep):
+                    targets = self.cache.morph_targets(rep)
+                    if targets is not None:
+                        self.renderer.set_morph_target(rep, targets)
+
+    def drawn(self, t: float):
+        """Representations, morph weights and the full schedule rows to draw at client time t."""
+        self.schedule.advance(t)
+        d = self.schedule.at(t)
+        here = self.cache.holds(d.rep)
+        self.run.skipped += int((~here).sum())
+        return d, d.rep[here], d.weight[here]
 
     def pump(self, deadline: float | None) -> None:
         """Handle queued messages; with a deadline, wait for more until it (monotonic s)."""
@@ -188,11 +277,16 @@ def run_client(
     max_fps: float | None = 60.0,
     timeout: float = 10.0,
     backend: str | None = "egl",
+    predict: bool = True,
+    morph: bool = True,
+    trace: bool = False,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
     ``max_fps`` paces frames like a display's refresh would (None: as fast as
     possible); ``timeout`` bounds connecting and waiting for the welcome.
+    ``predict`` and ``morph`` ask the server for path prediction and geomorphing;
+    ``trace`` records every frame's drawn levels and weights in ``ClientRun.trace``.
     Raises ``ClientError`` if the session cannot be opened.
     """
     width, height = (int(v) for v in viewport)
@@ -206,16 +300,17 @@ def run_client(
         with ws:
             hello = Hello(
                 protocol=PROTOCOL_VERSION, scene=scene, viewport=[width, height], fov_y=fov_y,
-                target_frame_time=target_frame_time, solver=solver, client=CLIENT_NAME,
+                target_frame_time=target_frame_time, solver=solver, client=CLIENT_NAME, predict=predict, morph=morph,
             )
             welcome, nbytes = _handshake(ws, hello, timeout)
-            counter = [nbytes]
+            counter = [nbytes, 0]
             run = ClientRun(welcome=welcome)
             inbox: queue.Queue[_Item] = queue.Queue()
-            receiver = threading.Thread(target=_receive, args=(ws, inbox, counter), name="ws-receive", daemon=True)
+            receiver = threading.Thread(target=_receive, args=(ws, inbox, counter, start), name="ws-receive",
+                                        daemon=True)
             receiver.start()
-            loop = _Loop(run, renderer, inbox)
-            _frames(ws, loop, welcome, start, duration, 1.0 / max_fps if max_fps else 0.0, on_frame)
+            loop = _Loop(run, renderer, inbox, ws)
+            _frames(ws, loop, welcome, start, duration, 1.0 / max_fps if max_fps else 0.0, on_frame, trace)
             if screenshot is not None:
                 renderer.save_png(screenshot)
         receiver.join(timeout)
@@ -224,13 +319,14 @@ def run_client(
                 item = inbox.get_nowait()
             except queue.Empty:
                 break
-            if isinstance(item, Delta):
+            if isinstance(item, _Arrived):
                 run.deltas_received += 1
             elif isinstance(item, Error):
                 run.errors.append(item)
         run.bytes_received = counter[0]
+        run.pings = counter[1]
         run.rejected = list(loop.cache.rejected)
-        run.skipped = loop.cache.skipped
+        run.unmorphed = renderer.unmorphed
         return run
     finally:
         renderer.release()
@@ -244,6 +340,7 @@ def _frames(
     duration: float,
     period: float,
     on_frame: Callable[[FrameRecord], None] | None,
+    trace: bool = False,
 ) -> None:
     """The frame loop proper; returns after ``duration`` s or when the connection ends."""
     tour = Tour(welcome.tour) if welcome.tour else Tour([{"t": 0.0, **welcome.start.model_dump()}])
@@ -260,7 +357,8 @@ def _frames(
         try:
             ws.send(encode(Camera(t=t, eye=eye.tolist(), forward=forward.tolist(), up=up.tolist())))
             loop.pump(None)
-            stats = renderer.draw(cache.selection, eye, forward, up, NEAR, far_plane(eye, bounds))
+            rows, reps, weights = loop.drawn(t)
+            stats = renderer.draw(reps, eye, forward, up, NEAR, far_plane(eye, bounds), weights=weights)
             ws.send(encode(FrameReport(
                 frame=frame, t=t, time=min(max(stats.time, 1e-9), 60.0), triangles=stats.triangles,
                 vertices=stats.vertices, draws=stats.draws, selection=cache.seq,
@@ -273,8 +371,10 @@ def _frames(
             frame=frame, t=t, time=stats.time, triangles=stats.triangles, vertices=stats.vertices,
             draws=stats.draws, seq=cache.seq, cost_coeff=last.cost_coeff if last else 0.0,
             budget=last.budget if last else 0.0, predicted_cost=last.predicted_cost if last else 0.0,
-            upload_time=loop.upload_time,
+            upload_time=loop.upload_time, morphs=stats.morphs,
         )
+        if trace:
+            loop.run.trace.append(FrameTrace(t, rows.key, rows.level, rows.rep, rows.weight))
         loop.upload_time = 0.0
         loop.run.frames.append(record)
         if on_frame is not None:

@@ -20,18 +20,25 @@ import numpy as np
 from proto.errors import ProtocolError
 from proto.geometry import Geometry, decode_geometry
 from proto.messages import Delta
+from proto.morph import decode_morph
 
 __all__ = ["Resident", "ResidentCache"]
 
 
 @dataclass(frozen=True)
 class Resident:
-    """One resident representation: which object and level it is, and its size."""
+    """One resident representation: which object and level it is, its size, and what morphing needs.
+
+    positions : (vertices, 3) float32 — kept on the CPU so a finer level's morph targets can be built
+    morph : (vertices,) uint32 map onto the previous level's vertices, or None
+    """
 
     object: int
     level: int
     faces: int
     vertices: int
+    positions: np.ndarray | None = None
+    morph: np.ndarray | None = None
 
 
 class ResidentCache:
@@ -53,6 +60,8 @@ class ResidentCache:
         self.skipped: int = 0
         self._triangles = 0
         self._vertices = 0
+        self._ids = np.zeros(0, np.int64)  # resident rep ids, sorted (for vectorised membership)
+        self.last_rejected: list[int] = []  # reps the last applied delta's payloads were refused for
 
     def __contains__(self, rep: int) -> bool:
         return rep in self.resident
@@ -79,21 +88,56 @@ class ResidentCache:
         its rep not made resident — and the rest of the delta still applies.
         """
         uploads: dict[int, Geometry] = {}
+        self.last_rejected = []
         for add in delta.add:
             try:
                 geometry = decode_geometry(add.geometry)
+                vmap = decode_morph(add.morph, n_fine=geometry.vertices) if add.morph is not None else None
             except ProtocolError as exc:
                 self.rejected.append(ProtocolError(exc.code, f"rep {add.rep}: {exc.message}"))
+                self.last_rejected.append(add.rep)
+                self.resident.pop(add.rep, None)
                 continue
-            self.resident[add.rep] = Resident(add.object, add.level, geometry.faces, geometry.vertices)
+            self.resident[add.rep] = Resident(add.object, add.level, geometry.faces, geometry.vertices,
+                                              geometry.positions, vmap)
             uploads[add.rep] = geometry
         to_free: list[int] = []
         for rep in delta.drop:
             if self.resident.pop(rep, None) is not None:
                 to_free.append(rep)
                 uploads.pop(rep, None)  # added and dropped in one delta: never reaches the GPU
+        self._ids = np.fromiter(self.resident.keys(), np.int64, len(self.resident))
+        self._ids.sort()
         self._select(delta.selection, delta.seq)
         return list(uploads.items()), to_free
+
+    def holds(self, reps: np.ndarray) -> np.ndarray:
+        """(s,) bool — which of ``reps`` are resident (vectorised: the per-frame check)."""
+        reps = np.asarray(reps, np.int64)
+        if self._ids.size == 0:
+            return np.zeros(reps.shape, bool)
+        pos = np.minimum(np.searchsorted(self._ids, reps), self._ids.size - 1)
+        return self._ids[pos] == reps
+
+    def levels(self, reps: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """(reps, levels) of the resident ones among ``reps``, as arrays (once per delta)."""
+        keep = [r for r in reps if r in self.resident]
+        return np.asarray(keep, np.int64), np.asarray([self.resident[r].level for r in keep], np.float64)
+
+    def morph_targets(self, rep: int) -> np.ndarray | None:
+        """(vertices, 3) float32 — where each vertex of ``rep`` goes at morph weight 0, if both levels are here.
+
+        The previous level of the same object is representation ``rep − 1``.
+        """
+        fine = self.resident.get(rep)
+        coarse = self.resident.get(rep - 1)
+        if fine is None or coarse is None or fine.morph is None or coarse.positions is None:
+            return None
+        if coarse.object != fine.object or coarse.level != fine.level - 1:
+            return None
+        if fine.morph.size and int(fine.morph.max()) >= coarse.vertices:
+            return None
+        return np.ascontiguousarray(coarse.positions[fine.morph], np.float32)
 
     def _select(self, reps: list[int], seq: int) -> None:
         keep = [r for r in reps if r in self.resident]

@@ -25,6 +25,10 @@ __all__ = [
     "Delta",
     "RepresentationAdd",
     "Error",
+    "Morphs",
+    "Ping",
+    "Pong",
+    "Ack",
     "Pose",
     "TourKey",
     "ClientMessage",
@@ -33,7 +37,7 @@ __all__ = [
     "SERVER_TYPES",
 ]
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 
 #: Coordinates beyond this are refused: they would lose all precision in float32.
 MAX_COORD = 1.0e7
@@ -45,6 +49,9 @@ Vec3 = Annotated[list[Coord], Field(min_length=3, max_length=3)]
 Name = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.\-]+$")]
 Id = Annotated[int, Field(ge=0, lt=1 << 31)]
 Count = Annotated[int, Field(ge=0, le=1 << 32)]
+#: A time on the client's clock (the session's time base); server estimates of it may precede 0.
+Time = Annotated[float, Field(ge=-1.0e9, le=1.0e9)]
+Level = Annotated[float, Field(ge=0.0, le=255.0)]
 
 
 class _Message(BaseModel):
@@ -96,6 +103,13 @@ class Hello(_Message):
     target_frame_time: Annotated[float, Field(ge=0.001, le=2.0)] = 0.05
     solver: Name = "greedy"
     client: Annotated[str, Field(max_length=128)] = ""
+    #: Predict the camera path and select for the future interval the delta takes effect in (Zach 2002, 3.3).
+    predict: bool = True
+    #: Change levels by geomorphing on a schedule (Zach 2002, 3.4) rather than switching at once.
+    morph: bool = True
+    #: Navigation limits θ (m/s) and ω (degrees/s) the conservative camera assumes; None: the maxima observed.
+    max_speed: Annotated[float, Field(gt=0.0, le=1.0e4)] | None = None
+    max_turn: Annotated[float, Field(gt=0.0, le=3600.0)] | None = None
 
 
 class Camera(Pose):
@@ -103,6 +117,24 @@ class Camera(Pose):
 
     type: Literal["camera"] = "camera"
     t: Annotated[float, Field(ge=0.0, le=1.0e9)]
+
+
+class Pong(_Message):
+    """The answer to a ``ping``, sent on receipt: the server's stamp back, and the client's clock then."""
+
+    type: Literal["pong"] = "pong"
+    id: Count
+    sent: float
+    t: Time
+
+
+class Ack(_Message):
+    """A delta has arrived (client time ``t``); ``rejected`` lists its representations the client refused."""
+
+    type: Literal["ack"] = "ack"
+    seq: Count
+    t: Time
+    rejected: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
 
 
 class FrameReport(_Message):
@@ -133,6 +165,16 @@ class Welcome(_Message):
     tau: Annotated[float, Field(gt=0.0, le=60.0)]
     solver: Name
     tour: Annotated[list[TourKey], Field(max_length=100_000)] = []
+    predict: bool = True
+    morph: bool = True
+
+
+class Ping(_Message):
+    """Asks for a ``pong`` at once, to measure the round trip and the client clock's offset (server time ``sent``)."""
+
+    type: Literal["ping"] = "ping"
+    id: Count
+    sent: float
 
 
 class RepresentationAdd(_Message):
@@ -142,26 +184,78 @@ class RepresentationAdd(_Message):
     object: Id
     level: Annotated[int, Field(ge=0, le=255)]
     geometry: Annotated[bytes, Field(max_length=1 << 28)]
+    #: ``proto.morph`` map of this level's vertices onto the previous level's, when one exists
+    morph: Annotated[bytes, Field(max_length=1 << 26)] | None = None
+
+
+class Morphs(_Message):
+    """Level transitions, as columns: ``rep``'s object ramps from ``level_from`` to ``level_to`` over [t0, t1).
+
+    ``rep`` is the representation at ``level_to`` (for vegetation, the tree
+    group's; its levels are resolutions in [0, 1]). A ramp across several levels
+    is the chain of adjacent morphs Zach prescribes, each taking its share of
+    the time. ``level_from == level_to`` holds a level over the span.
+    """
+
+    rep: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
+    level_from: Annotated[list[Level], Field(max_length=MAX_LIST)] = []
+    level_to: Annotated[list[Level], Field(max_length=MAX_LIST)] = []
+    t0: Annotated[list[Time], Field(max_length=MAX_LIST)] = []
+    t1: Annotated[list[Time], Field(max_length=MAX_LIST)] = []
+
+    @model_validator(mode="after")
+    def _columns(self) -> "Morphs":
+        n = len(self.rep)
+        if not (len(self.level_from) == len(self.level_to) == len(self.t0) == len(self.t1) == n):
+            raise ValueError("morph columns must have equal lengths")
+        if any(b < a for a, b in zip(self.t0, self.t1)):
+            raise ValueError("a morph's t1 must not precede its t0")
+        return self
+
+    def __len__(self) -> int:
+        return len(self.rep)
 
 
 class Delta(_Message):
-    """Representations to add and drop, and the selection to draw during [t0, t1)."""
+    """Representations to add and drop, the selection to draw from ``t0`` (for [t0, t1)), and its morph schedule.
+
+    From ``start`` on this delta's schedule governs: until ``t0`` the client
+    keeps drawing the previous selection, except where ``morphs`` (down-morphs,
+    ``t0`` entries before ``t0``) say otherwise; from ``t0`` it draws ``selection``,
+    with the up-morphs ``morphs`` lists. A ``reset`` delta (the first, or after a
+    teleport) replaces what is drawn at once. Times are on the client's clock.
+    """
 
     type: Literal["delta"] = "delta"
     seq: Count
-    t0: float
-    t1: float
+    t0: Time
+    t1: Time
+    start: Time | None = None
+    reset: bool = False
     add: Annotated[list[RepresentationAdd], Field(max_length=MAX_LIST)] = []
     drop: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
     selection: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
     budget: Annotated[float, Field(ge=0.0)] = 0.0
     predicted_cost: Annotated[float, Field(ge=0.0)] = 0.0
     cost_coeff: Annotated[float, Field(ge=0.0)] = 0.0
+    morphs: Morphs = Morphs()
+    #: Tree groups drawn from t0 (their representation) and their resolution x ∈ [0, 1]
+    vegetation: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
+    resolution: Annotated[list[Annotated[float, Field(ge=0.0, le=1.0)]], Field(max_length=MAX_LIST)] = []
+    ramps: Morphs = Morphs()
 
     @model_validator(mode="after")
     def _interval(self) -> "Delta":
         if self.t1 < self.t0:
             raise ValueError("t1 must not precede t0")
+        if self.start is not None and self.start > self.t0:
+            raise ValueError("start must not follow t0")
+        if len(self.vegetation) != len(self.resolution):
+            raise ValueError("vegetation and resolution must have equal lengths")
+        if any(x > 1.0 for x in self.ramps.level_from) or any(x > 1.0 for x in self.ramps.level_to):
+            raise ValueError("vegetation ramps are resolutions in [0, 1]")
+        if any(a != int(a) for a in self.morphs.level_from) or any(b != int(b) for b in self.morphs.level_to):
+            raise ValueError("mesh morphs go between whole levels")
         return self
 
 
@@ -173,8 +267,10 @@ class Error(_Message):
     message: Annotated[str, Field(max_length=4096)]
 
 
-ClientMessage = Union[Hello, Camera, FrameReport]
-ServerMessage = Union[Welcome, Delta, Error]
+ClientMessage = Union[Hello, Camera, FrameReport, Pong, Ack]
+ServerMessage = Union[Welcome, Delta, Error, Ping]
 
-CLIENT_TYPES: dict[str, type[_Message]] = {"hello": Hello, "camera": Camera, "frame_report": FrameReport}
-SERVER_TYPES: dict[str, type[_Message]] = {"welcome": Welcome, "delta": Delta, "error": Error}
+CLIENT_TYPES: dict[str, type[_Message]] = {
+    "hello": Hello, "camera": Camera, "frame_report": FrameReport, "pong": Pong, "ack": Ack,
+}
+SERVER_TYPES: dict[str, type[_Message]] = {"welcome": Welcome, "delta": Delta, "error": Error, "ping": Ping}

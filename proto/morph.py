@@ -25,7 +25,7 @@ import numpy as np
 from .errors import ProtocolError
 from .geometry import MAX_VERTICES
 
-__all__ = ["MORPH_ENCODING", "encode_morph", "decode_morph"]
+__all__ = ["MORPH_ENCODING", "encode_morph", "decode_morph", "ramp_levels"]
 
 MORPH_ENCODING = "mm1"
 
@@ -94,3 +94,18 @@ def decode_morph(blob: bytes, n_fine: int | None = None, n_coarse: int | None = 
     if int(seq.max()) >= nc:
         raise ProtocolError("bad_geometry", f"morph entry {int(seq.max())} out of range for {nc} vertices")
     return seq
+
+
+def ramp_levels(level0, level1, t0, t1, t: float) -> np.ndarray:
+    """What a ``Morphs`` entry means: the level of ramps level0 → level1 over [t0, t1) at time t.
+
+    level0 before t0, level1 from t1 on, linear between (arrays broadcast). Both
+    the server's scheduler and the client's executor read schedules through this.
+    """
+    t0 = np.asarray(t0, np.float64)
+    t1 = np.asarray(t1, np.float64)
+    span = t1 - t0
+    f = np.where(span > 0, (t - t0) / np.where(span > 0, span, 1.0), (t >= t1).astype(np.float64))
+    f = np.clip(f, 0.0, 1.0)
+    level0 = np.asarray(level0, np.float64)
+    return level0 + (np.asarray(level1, np.float64) - level0) * f

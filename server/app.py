@@ -103,7 +103,8 @@ def create_app(scenes: Mapping[str, SceneStore], config: SessionConfig | None = 
                     if msg["type"] == "websocket.disconnect":
                         break
                     data = msg.get("bytes")
-                    await inbox.put(data if data is not None else (msg.get("text") or ""))
+                    # Stamped on arrival: a pong's round trip must not include a selection it waited behind.
+                    await inbox.put((data if data is not None else (msg.get("text") or ""), time.monotonic()))
             except (WebSocketDisconnect, RuntimeError, OSError):
                 pass
             finally:
@@ -128,7 +129,7 @@ def create_app(scenes: Mapping[str, SceneStore], config: SessionConfig | None = 
                     if item is _TICK:
                         frames = await loop.run_in_executor(None, poll_encoded, time.monotonic())
                     else:
-                        frames = [encode(m) for m in session.receive(item, time.monotonic())]
+                        frames = [encode(m) for m in session.receive(*item)]
                 except Exception:  # a bug of ours: log loudly, tell the client, keep the session
                     log.exception("session %s failed", session.id)
                     frames = [encode(Error(code="internal", message="the server failed handling that message"))]

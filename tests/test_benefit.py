@@ -135,12 +135,14 @@ def test_benefit_matrix_on_a_hand_worked_case():
     # Object 0: size · accuracy only (no offset, no motion, no previous).
     acc0 = [1 - 0.5 / 10, 1 - 0.5 / 36, 1 - 0.5 / 100, 1 - 0.5 / 3600]
     np.testing.assert_allclose(got[0], 400 * np.array(acc0))
-    # Object 1: importance 0.5, focus 1 − 0.5·1 = 0.5; motion: 50 px/s · 0.1 s / √(100/faces);
-    # previous = option 1 (level 0, lit): hysteresis 1/(1 + |ΔL| + 0.5·|ΔR|).
+    # Object 1: importance 0.5, focus 1 − 0.5·1 = 0.5; motion (the object's, against its coarsest
+    # level's polygons): 50 px/s · 0.1 s / √(100/4); previous = option 1 (level 0, lit): a change keeps
+    # the share 1/(1 + |ΔL| + 0.5·|ΔR|) of the benefit it gains, and loses the rest more.
     acc1 = np.array([1 - 0.5 / 4, 1 - 0.5 / 9, 1 - 0.5 / 16, 1 - 0.5 / 100])
-    blur = 5.0 / np.sqrt(100 / np.array([4, 4, 16, 16]))
-    hyst = 1 / (1 + np.array([0.5, 0.0, 1.5, 1.0]))
-    np.testing.assert_allclose(got[1], 100 * acc1 * 0.5 * 0.5 / (1 + blur) * hyst)
+    blur = 5.0 / np.sqrt(100 / 4)
+    raw = 100 * acc1 * 0.5 * 0.5 / (1 + blur)
+    keep = 1 / (1 + np.array([0.5, 0.0, 1.5, 1.0]))
+    np.testing.assert_allclose(got[1], raw - (1 - keep) * np.abs(raw - raw[1]))
 
 
 def test_zach_mode_uses_the_finest_level_as_original():

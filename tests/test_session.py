@@ -8,7 +8,7 @@ import pytest
 
 from proto import PROTOCOL_VERSION
 from proto.codec import decode_server, encode
-from proto.messages import Camera, Delta, Error, FrameReport, Hello, Welcome
+from proto.messages import Camera, Delta, Error, FrameReport, Hello, Ping, Pong, Welcome
 from server.scene.store import SceneStore
 from server.session import Session, SessionConfig, SessionState
 
@@ -35,34 +35,54 @@ def _wire(out):
     return [decode_server(encode(m)) for m in out]
 
 
-def _open(scenes, config=None) -> Session:
+def _open(scenes, config=None, **hello) -> Session:
     s = Session(scenes, "s1", config)
-    (welcome,) = _wire(s.receive(_hello(scenes), now=0.0))
+    welcome, ping = _wire(s.receive(_hello(scenes, **hello), now=0.0))
     assert isinstance(welcome, Welcome) and welcome.session == "s1" and len(welcome.tour) >= 2
+    assert isinstance(ping, Ping) and ping.sent == 0.0
+    assert s.receive(encode(Pong(id=ping.id, sent=ping.sent, t=0.0)), now=0.0) == []  # same clock, no delay
+    assert s.clock.known and s.clock.rtt == 0.0
     return s
 
 
-def test_first_camera_is_answered_at_once_then_every_tau(scenes):
+def _deltas(out) -> list[Delta]:
+    return [m for m in _wire(out) if isinstance(m, Delta)]
+
+
+def _next_delta(s: Session) -> Delta:
+    for _ in range(100):  # pings may fall due first
+        found = _deltas(s.poll(s.next_deadline()))
+        if found:
+            (delta,) = found
+            return delta
+    raise AssertionError("no delta came due")
+
+
+def test_first_camera_is_answered_at_once_then_on_the_pipeline(scenes):
     s = _open(scenes)
     assert s.poll(0.0) == []  # no pose yet
     assert s.receive(_camera(scenes), now=1.0) == []
     assert s.next_deadline() == 1.0
-    (delta,) = _wire(s.poll(1.0))
-    assert isinstance(delta, Delta) and delta.seq == 1
+    (delta,) = _deltas(s.poll(1.0))
+    assert isinstance(delta, Delta) and delta.seq == 1 and delta.reset
     assert delta.selection and {a.rep for a in delta.add} == set(delta.selection)
     assert delta.predicted_cost <= delta.budget == 0.05
-    assert s.poll(1.2) == []  # not due before τ
-    (second,) = _wire(s.poll(1.5))
-    assert second.seq == 2 and second.add == []  # same pose: nothing new to send
+    due = s.next_deadline()
+    assert due > 1.0 + 0.5 * s.config.tau  # the next selection waits for its slot ...
+    assert _deltas(s.poll(due - 0.01)) == []
+    second = _next_delta(s)  # ... and then targets the interval after the next
+    assert second.seq == 2 and not second.reset and second.add == []  # same pose: nothing new to send
+    assert second.t0 - delta.t0 == pytest.approx(2 * s.config.tau)
+    assert second.start == pytest.approx(second.t0 - s.config.tau)
 
 
 def test_frame_reports_drive_the_cost_model(scenes):
     s = _open(scenes)
     s.receive(_camera(scenes), now=0.0)
-    (first,) = s.poll(0.0)
+    (first,) = _deltas(s.poll(0.0))
     for i in range(30):  # the client says: 1e-6 s per vertex
         s.receive(encode(FrameReport(frame=i, t=0.1 * i, time=0.1, triangles=200_000, vertices=100_000, draws=5)), 0.1)
-    (second,) = s.poll(0.5)
+    second = _next_delta(s)
     assert second.cost_coeff == pytest.approx(1e-6, rel=0.01) and first.cost_coeff < 5e-7
     index = scenes[s.scene_name].index
     assert index.rep_vertices[second.selection].sum() * 1e-6 <= 0.05 * (1 + 1e-9)
@@ -86,7 +106,7 @@ def test_malformed_frames_get_error_frames_and_change_nothing(scenes):
         assert isinstance(err, Error) and err.code == code
     assert s.state is SessionState.ACTIVE and s.camera is not None
     assert s.stats["errors"] == before["errors"] + len(bad) and s.stats["frames"] == before["frames"]
-    (delta,) = s.poll(0.2)
+    (delta,) = _deltas(s.poll(0.2))
     assert isinstance(delta, Delta)
 
 
@@ -100,27 +120,32 @@ def test_bad_hello_is_refused_and_may_be_retried(scenes, fields, code):
     assert isinstance(err, Error) and err.code == code and s.state is SessionState.AWAIT_HELLO
     (err,) = s.receive(_camera(scenes), 0.0)
     assert err.code == "bad_state"
-    (welcome,) = s.receive(_hello(scenes), 0.0)
+    welcome, _ = s.receive(_hello(scenes), 0.0)
     assert isinstance(welcome, Welcome)
 
 
 def test_cache_mirror_evicts_under_pressure_and_never_selects_what_the_client_lacks(scenes):
     index = next(iter(scenes.values())).index
     small = int(np.sort(index.rep_bytes)[::-1][:8].sum())  # room for about 8 representations
-    s = _open(scenes, SessionConfig(cache_bytes=small))
+    s = _open(scenes, SessionConfig(cache_bytes=small), predict=False)
     held: set[int] = set()
     tour = index.tour
     dropped = 0
     for i, key in enumerate(tour * 2):
         pose = {k: key[k] for k in ("eye", "forward", "up")}
         s.receive(encode(Camera(t=float(i), **pose)), now=float(i))
-        (delta,) = _wire(s.poll(float(i)))
+        (delta,) = _deltas(s.poll(max(float(i), s.next_deadline())))
         added = {a.rep for a in delta.add}
         assert not added & held  # nothing the client holds is sent again
         held |= added
         held -= set(delta.drop)
         dropped += len(delta.drop)
         assert set(delta.selection) <= held  # the selection only names resident representations
+        levels = index.rep_level[delta.selection]
+        assert set((np.asarray(delta.selection) - levels).tolist()) >= {r - l for r, l in zip(delta.morphs.rep, map(int, delta.morphs.level_to))}
+        for r, a, b in zip(delta.morphs.rep, delta.morphs.level_from, delta.morphs.level_to):
+            key = r - int(b)
+            assert {key + lv for lv in range(int(min(a, b)), int(max(a, b)) + 1)} <= held  # every level a morph passes
         assert held == set(np.nonzero(s._resident)[0].tolist())  # the mirror agrees with the client
     assert dropped > 0
 

@@ -23,7 +23,7 @@ from .camera import View, centre_offset, cull_boxes, cull_hierarchy, frustum_pla
 from .cost import CostModel
 from .solvers.candidates import NO_LIMIT, Candidates, Limit
 
-__all__ = ["Levels", "Scene", "Memory", "Choice", "select", "HIERARCHICAL", "MIXED"]
+__all__ = ["Levels", "Scene", "Memory", "Choice", "Interval", "select", "HIERARCHICAL", "MIXED"]
 
 #: Solvers that read the hierarchical view, and the one that also takes the vegetation.
 HIERARCHICAL = frozenset({"hierarchical"})
@@ -120,6 +120,56 @@ class Memory:
 
 
 @dataclass(frozen=True)
+class Interval:
+    """The cameras one selection is for (Zach 2002, 3.3): the predicted path sampled over the
+    target interval, and the conservative camera that contains every view reachable by then.
+
+    Benefit is the mean over ``views`` plus ``weight`` (λ, the distrust of the
+    prediction) times the conservative camera's; cost is the maximum over ``views``.
+    times : client time of each view (the Motion factor's clock), or None
+    """
+
+    views: tuple
+    conservative: View | None = None
+    weight: float = 0.1
+    times: tuple | None = None
+
+    def __post_init__(self) -> None:
+        if not self.views:
+            raise ValueError("an interval needs at least one sampled view")
+        if not (self.weight >= 0 and np.isfinite(self.weight)):
+            raise ValueError(f"the conservative weight λ must be finite and ≥ 0, got {self.weight}")
+
+
+@dataclass(frozen=True)
+class _Cam:
+    """One camera of a selection: its (widened) view, matrices, benefit weight and client time."""
+
+    view: View
+    clip: np.ndarray
+    planes: np.ndarray
+    weight: float
+    t: float | None
+    sampled: bool  # a sample of the path (costs are its maximum), not the conservative camera
+
+
+def _cameras(view, margin_deg: float, t: float | None) -> list[_Cam]:
+    def cam(v, w, tt, sampled, margin):
+        wide = widened(v, margin)
+        clip = wide.matrix()
+        return _Cam(wide, clip, frustum_planes(clip), w, tt, sampled)
+
+    if isinstance(view, Interval):
+        n = len(view.views)
+        times = view.times or (t,) * n
+        cams = [cam(v, 1.0 / n, tt, True, margin_deg) for v, tt in zip(view.views, times)]
+        if view.conservative is not None and view.weight > 0:
+            cams.append(cam(view.conservative, view.weight, times[0], False, 0.0))
+        return cams
+    return [cam(view, 1.0, t, True, margin_deg)]
+
+
+@dataclass(frozen=True)
 class Choice:
     """The selection: representation ids to draw (one per drawn object), predicted cost and benefit."""
 
@@ -129,6 +179,7 @@ class Choice:
     visible: int
     stats: dict
     x: np.ndarray | None = None  # vegetation resolutions (mixed solver), one per visible tree group
+    x_reps: np.ndarray | None = None  # the tree groups' representations, aligned with x
 
 
 def _options(lv: Levels, rows: np.ndarray):
@@ -141,31 +192,55 @@ def _options(lv: Levels, rows: np.ndarray):
     return rep, valid, np.where(valid, lv.rep_faces[rep], 0), np.where(valid, lv.rep_vertices[rep], 0)
 
 
-def _benefit_cost(lv, rows, scene, wide, clip, cost_model, memory, t, factors):
-    """Per visible row: (v, K) benefit and cost of each level, with the F&S factors the inputs allow."""
+def _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors):
+    """Per visible row: (v, K) benefit and cost of each level, with the F&S factors the inputs allow.
+
+    Over several cameras (an ``Interval``) benefit is their weighted sum, a row
+    outside a camera's frustum gaining nothing from it, and size the mean over
+    the sampled ones; cost is the maximum over the sampled cameras (view
+    independent for now: c_vertex · vertices).
+    """
     lo, hi = lv.object_lo[rows], lv.object_hi[rows]
-    size = screen_size(lo, hi, clip, wide.width, wide.height)
     rep, valid, faces, vertices = _options(lv, rows)
-    speed = None
-    if memory is not None and memory.view is not None and memory.t is not None and t is not None and t > memory.t:
-        speed = screen_speed(lo, hi, clip, memory.view.matrix(), t - memory.t, wide.width, wide.height)
     previous = None
     if memory is not None and memory.option is not None:
         previous = memory.option[lv.ids[rows]] if lv.ids is not None else memory.option[rows]
-    benefit = benefit_matrix(
-        size, faces, factors=factors, vertices=vertices,
-        object_class=lv.object_class[rows] if lv.object_class is not None and scene.importance is not None else None,
-        importance_table=scene.importance,
-        offset=centre_offset(lo, hi, clip, wide.width, wide.height), speed=speed, previous=previous,
-    )
+    klass = lv.object_class[rows] if lv.object_class is not None and scene.importance is not None else None
+    benefit = np.zeros(faces.shape)
+    size_sum = np.zeros(rows.size)
+    n_sampled = 0
+    for cam in cams:
+        wide, clip = cam.view, cam.clip
+        inside = cull_boxes(lo, hi, cam.planes) if len(cams) > 1 else np.ones(rows.size, bool)
+        size = np.where(inside, screen_size(lo, hi, clip, wide.width, wide.height), 0.0)
+        speed = None
+        t = cam.t
+        if memory is not None and memory.view is not None and memory.t is not None and t is not None and t > memory.t:
+            speed = screen_speed(lo, hi, clip, memory.view.matrix(), t - memory.t, wide.width, wide.height)
+        b = benefit_matrix(
+            size, faces, factors=factors, vertices=vertices, object_class=klass, importance_table=scene.importance,
+            offset=centre_offset(lo, hi, clip, wide.width, wide.height), speed=speed, previous=previous,
+        )
+        benefit += cam.weight * b
+        if cam.sampled:
+            size_sum += size
+            n_sampled += 1
     benefit = np.where(valid, benefit, 0.0)
     cost = np.where(valid, cost_model.predict(vertices), np.inf)
-    return size, rep, valid, faces, benefit, cost, previous
+    return size_sum / max(n_sampled, 1), rep, valid, faces, benefit, cost, previous
+
+
+def _cull(lv, cams) -> np.ndarray:
+    """(n,) bool — rows inside any camera's frustum."""
+    visible = np.zeros(lv.n, bool)
+    for cam in cams:
+        visible |= cull_boxes(lv.object_lo, lv.object_hi, cam.planes)
+    return visible
 
 
 def select(
     scene: Scene | Levels,
-    view: View,
+    view: View | Interval,
     cost_model: CostModel,
     budget: float,
     solver: str = "greedy",
@@ -178,26 +253,25 @@ def select(
 ) -> Choice:
     """Choose representations for ``view`` within ``budget`` seconds with the solver called ``solver``.
 
-    ``margin_deg`` widens the field of view so that objects about to come into
-    view during the interval are already selected. ``memory`` (updated in place)
-    carries hysteresis, motion and solver state between runs; ``t`` is the view's
-    client time.
+    ``view`` is one camera, or an ``Interval`` of predicted cameras and the
+    conservative one. ``margin_deg`` widens the field of view of the (sampled)
+    cameras so that objects about to come into view are already selected.
+    ``memory`` (updated in place) carries hysteresis, motion and solver state
+    between runs; ``t`` is the view's client time.
     """
     if isinstance(scene, Levels):
         scene = Scene(flat=scene, n_objects=int(scene.ids.max()) + 1 if scene.ids is not None and scene.n else scene.n)
     factors = factors or BenefitFactors()
     solve = solvers.get(solver)
-    wide = widened(view, margin_deg)
-    clip = wide.matrix()
-    planes = frustum_planes(clip)
+    cams = _cameras(view, margin_deg, t)
     if solver in HIERARCHICAL:
         if scene.hierarchy is None:
             raise ValueError("the hierarchical solver needs the scene's hierarchical view (Scene.of)")
-        choice = _select_hierarchical(scene, wide, clip, planes, cost_model, budget, solve, memory, t, factors, limit)
+        choice = _select_hierarchical(scene, cams, cost_model, budget, solve, memory, factors, limit)
     else:
-        choice = _select_flat(scene, wide, clip, planes, cost_model, budget, solver, solve, memory, t, factors, limit)
+        choice = _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors, limit)
     if memory is not None:
-        memory.view, memory.t = wide, t
+        memory.view, memory.t = cams[0].view, cams[0].t
     return choice
 
 
@@ -210,17 +284,16 @@ def _remember(memory: Memory | None, scene: Scene, ids: np.ndarray, option: np.n
     memory.option[ids] = option
 
 
-def _select_flat(scene, wide, clip, planes, cost_model, budget, solver, solve, memory, t, factors, limit) -> Choice:
+def _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors, limit) -> Choice:
     lv = scene.flat
-    rows = np.nonzero(cull_boxes(lv.object_lo, lv.object_hi, planes))[0]
+    rows = np.nonzero(_cull(lv, cams))[0]
     smooth, trees = None, np.zeros(0, np.int64)
     if solver in MIXED:
-        smooth, trees = _smooth(scene, wide, clip, planes, cost_model)
+        smooth, trees = _smooth(scene, cams, cost_model)
     if rows.size == 0 and trees.size == 0:
         _remember(memory, scene, np.zeros(0, np.int64), np.zeros(0, np.int64))
         return Choice(np.zeros(0, np.int64), 0.0, 0.0, 0, {"stopped": "done"})
-    size, rep, valid, faces, benefit, cost, previous = _benefit_cost(
-        lv, rows, scene, wide, clip, cost_model, memory, t, factors)
+    size, rep, valid, faces, benefit, cost, previous = _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors)
     cand = Candidates.of(benefit, cost, valid, size=size, faces=faces,
                          previous=None if previous is None else previous.astype(np.int64))
     state = dict(memory.solver) if memory is not None else {}
@@ -247,24 +320,34 @@ def _select_flat(scene, wide, clip, planes, cost_model, budget, solver, solve, m
         # budget, but what the client is predicted to spend is the discrete part it draws.
         cost_drawn = float(stats.get("discrete_cost", result.cost))
     return Choice(reps=reps, cost=cost_drawn, benefit=result.benefit, visible=int(rows.size + trees.size),
-                  stats=stats, x=result.x)
+                  stats=stats, x=result.x, x_reps=_group_reps(scene, trees) if result.x is not None else None)
 
 
-def _smooth(scene, wide, clip, planes, cost_model):
+def _group_reps(scene: Scene, rows: np.ndarray) -> np.ndarray:
+    """The representation (finest level) of each given tree group row."""
+    veg = scene.vegetation
+    return (veg.rep_first[rows] + veg.rep_count[rows] - 1).astype(np.int64)
+
+
+def _smooth(scene, cams, cost_model):
     """The continuous part of the mixed solver: visible tree groups, resolution x ∈ [0, 1] each.
 
-    Benefit weight is the pixels a group covers (× importance); its cost at full resolution
-    is the cost model's price of all its points.
+    Benefit weight is the pixels a group covers (× importance, weighted over the
+    cameras like a mesh's); its cost at full resolution is the cost model's price of all its points.
     """
     from .solvers.mixed import Smooth
 
     veg = scene.vegetation
     if veg is None or veg.n == 0:
         return Smooth.empty(), np.zeros(0, np.int64)
-    rows = np.nonzero(cull_boxes(veg.object_lo, veg.object_hi, planes))[0]
+    rows = np.nonzero(_cull(veg, cams))[0]
     if rows.size == 0:
         return Smooth.empty(), rows
-    weight = screen_size(veg.object_lo[rows], veg.object_hi[rows], clip, wide.width, wide.height)
+    lo, hi = veg.object_lo[rows], veg.object_hi[rows]
+    weight = np.zeros(rows.size)
+    for cam in cams:
+        inside = cull_boxes(lo, hi, cam.planes) if len(cams) > 1 else np.ones(rows.size, bool)
+        weight += cam.weight * np.where(inside, screen_size(lo, hi, cam.clip, cam.view.width, cam.view.height), 0.0)
     if scene.importance is not None and veg.object_class is not None:
         weight = weight * scene.importance[veg.object_class[rows]]
     points = veg.rep_vertices[veg.rep_first[rows] + veg.rep_count[rows] - 1]
@@ -272,16 +355,18 @@ def _smooth(scene, wide, clip, planes, cost_model):
     return Smooth.of(weight, slope), rows
 
 
-def _select_hierarchical(scene, wide, clip, planes, cost_model, budget, solve, memory, t, factors, limit) -> Choice:
+def _select_hierarchical(scene, cams, cost_model, budget, solve, memory, factors, limit) -> Choice:
     from .solvers.hierarchical import Forest
 
     lv = scene.hierarchy
-    visible = cull_hierarchy(lv.parent, lv.object_lo, lv.object_hi, planes)
+    visible = np.zeros(lv.n, bool)
+    for cam in cams:
+        visible |= cull_hierarchy(lv.parent, lv.object_lo, lv.object_hi, cam.planes)
     rows = np.nonzero(visible)[0]
     if rows.size == 0:
         _remember(memory, scene, np.zeros(0, np.int64), np.zeros(0, np.int64))
         return Choice(np.zeros(0, np.int64), 0.0, 0.0, 0, {"stopped": "done"})
-    _, rep_v, valid_v, _, benefit_v, cost_v, _ = _benefit_cost(lv, rows, scene, wide, clip, cost_model, memory, t, factors)
+    _, rep_v, valid_v, _, benefit_v, cost_v, _ = _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors)
     # The forest spans every node; culled ones keep their levels (for shape checks) but are never cut.
     rep, valid, _, vertices = _options(lv, np.arange(lv.n))
     k = valid.shape[1]
