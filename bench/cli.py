@@ -193,6 +193,51 @@ def bench_select(
         print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
 
 
+@bench_app.command("predict")
+def bench_predict(
+    stores: Optional[list[Path]] = typer.Option(None, "--store", help="scene stores whose tours to predict "
+                                                "(default: the demo and Den Haag stores, built if missing)"),
+    rate: float = typer.Option(20.0, help="camera samples per second, as a client sends them"),
+    jitter: float = typer.Option(0.0, help="Gaussian noise on each sampled eye, metres (0.5° on the direction)"),
+    pairs: int = typer.Option(40, help="level pairs rendered to compare vertex correspondences (0: skip)"),
+    size: Optional[int] = typer.Option(None, help="Den Haag store scale for the correspondences (trees; "
+                                       "default: the full scene)"),
+    seed: int = typer.Option(0, help="random seed (jitter, pair sampling)"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
+) -> None:
+    """Prediction error against horizon on the scenes' tours (against holding the last pose), and
+    nearest-vertex against collapse-map geomorph correspondences rendered by the real client."""
+    from bench.correspondence import cached_store, measure
+    from bench.predict import run, tours_from_stores
+
+    if rate <= 0 or jitter < 0 or pairs < 0:
+        raise typer.BadParameter("rate must be positive, jitter and pairs non-negative")
+    for path in stores or []:
+        if not path.exists():
+            raise typer.BadParameter(f"no such store: {path}", param_hint="--store")
+    city = cached_store(size=size, seed=0, quiet=as_json)
+    if not stores:
+        demo = _demo_store(576, 0)
+        if not demo.exists():
+            _build_demo_with_progress(demo, 576, 0, quiet=as_json)
+        stores = [demo, city]
+    bar, tick = _progress_bar("bench predict", quiet=as_json)
+    with bar:
+        prediction = run(tours_from_stores(stores), rate=rate, jitter=jitter, seed=seed, progress=tick)
+        morph = measure(city, pairs=pairs, seed=seed, progress=tick) if pairs else None
+    lines = ["Prediction error against horizon (linear prediction vs holding the last pose):", *prediction["lines"]]
+    if morph is not None:
+        lines += ["", f"Geomorph correspondences on {city.name} (half-way morph vs the blend of its end states):",
+                  *morph["lines"]]
+    for line in lines:  # to stderr under --json, so the JSON stays the last line of stdout
+        typer.echo(line, err=as_json)
+    if as_json:
+        out = {"prediction": {k: v for k, v in prediction.items() if k != "lines"}}
+        if morph is not None:
+            out["correspondence"] = {k: v for k, v in morph.items() if k != "lines"}
+        print(json.dumps(out))
+
+
 @app.command()
 def serve(
     stores: list[Path] = typer.Argument(..., help="scene stores to serve, each under its recorded name"),

@@ -124,3 +124,26 @@ def test_abrupt_disconnects_leave_the_server_serving(server, demo_store):
     assert _sessions(server) == 0
     run = run_client(server.url, "demo", duration=1.0, viewport=(160, 90), target_frame_time=0.02)
     assert run.errors == [] and any(f.seq >= 1 for f in run.frames)
+
+
+def test_prediction_and_morphing_run_end_to_end_without_popping(server):
+    """The real client on the tour with prediction and geomorphing: levels only ever glide."""
+    run = run_client(server.url, "demo", duration=8.0, viewport=(320, 180), target_frame_time=0.004, trace=True)
+    assert run.errors == [] and run.rejected == [] and run.close_reason is None
+    assert run.welcome.predict and run.welcome.morph and run.pings >= 3
+    assert run.deltas_received >= 6 and run.late == 0  # every schedule arrived before its window opened
+    frames = [f for f in run.trace if f.key.size]
+    assert len(frames) >= 60
+    assert sum(f.morphs for f in run.frames) > 0  # geomorphs were drawn ...
+    assert run.unmorphed == 0  # ... each with its morph targets in place
+    tau = run.welcome.tau
+    steps = 0
+    for a, b in zip(frames, frames[1:]):
+        shared, ia, ib = np.intersect1d(a.key, b.key, return_indices=True)
+        jump = np.abs(b.level[ib] - a.level[ia])
+        # No representation's weight jumps: at most a chain of levels per τ (7 levels here), never a pop.
+        assert np.all(jump <= 7.0 / tau * (b.t - a.t) + 1e-6), (a.t, shared[jump.argmax()], jump.max())
+        steps += int((jump > 0).sum())
+    assert steps > 0  # and the levels did change along the tour
+    sessions = httpx.get(server.http + "/sessions", timeout=10).json()
+    assert all(s["late"] == 0 for s in sessions)
