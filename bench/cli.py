@@ -200,8 +200,9 @@ def bench_predict(
     rate: float = typer.Option(20.0, help="camera samples per second, as a client sends them"),
     jitter: float = typer.Option(0.0, help="Gaussian noise on each sampled eye, metres (0.5° on the direction)"),
     pairs: int = typer.Option(40, help="level pairs rendered to compare vertex correspondences (0: skip)"),
-    size: Optional[int] = typer.Option(None, help="Den Haag store scale for the correspondences (trees; "
-                                       "default: the full scene)"),
+    city: Optional[Path] = typer.Option(None, help="the city store the correspondences are rendered on "
+                                        "(default: Den Haag, built if missing)"),
+    size: Optional[int] = typer.Option(None, help="scale of the default Den Haag store (trees; default: full)"),
     seed: int = typer.Option(0, help="random seed (jitter, pair sampling)"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
 ) -> None:
@@ -215,7 +216,10 @@ def bench_predict(
     for path in stores or []:
         if not path.exists():
             raise typer.BadParameter(f"no such store: {path}", param_hint="--store")
-    city = cached_store(size=size, seed=0, quiet=as_json)
+    if city is not None and not city.exists():
+        raise typer.BadParameter(f"no such store: {city}", param_hint="--city")
+    if city is None and (pairs or not stores):
+        city = cached_store(size=size, seed=0, quiet=as_json)
     if not stores:
         demo = _demo_store(576, 0)
         if not demo.exists():
@@ -289,6 +293,8 @@ def client(
     height: int = typer.Option(360),
     screenshot: Optional[Path] = typer.Option(None, help="write the last frame to this PNG"),
     solver: str = typer.Option("greedy", help=SOLVER_HELP),
+    predict: bool = typer.Option(True, help="ask the server to select for the predicted camera path"),
+    morph: bool = typer.Option(True, help="ask for geomorph schedules (off: levels switch at once)"),
 ) -> None:
     """Run the headless client over the scene's tour and print its frame times."""
     from client.app import run_client
@@ -296,7 +302,7 @@ def client(
     _check_solver(solver)
     run = run_client(
         url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3, screenshot=screenshot,
-        solver=solver,
+        solver=solver, predict=predict, morph=morph,
     )
     from bench.demo import summarize
 

@@ -75,3 +75,28 @@ def test_demo_store_tour(demo_store):
     rows = _rows(result, "demo")
     assert len(rows) == 2 and rows[1]["pos_mean"] > rows[0]["pos_mean"]
     assert all(r["pos_ratio"] < 0.5 and r["ang_ratio"] < 1.0 for r in rows)
+
+
+def test_cli_prints_both_parts_as_json(demo_store, denhaag_store):
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "bench.cli", "bench", "predict", "--store", str(demo_store),
+                           "--city", str(denhaag_store), "--pairs", "4", "--json"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    figures = json.loads(done.stdout)
+    rows = figures["prediction"]["rows"]
+    assert {r["horizon"] for r in rows} == {0.25, 0.5, 1.0, 1.5, 2.0}
+    assert figures["correspondence"]["summary"]["winner"] in ("collapse", "nearest", "tie")
+    assert "Prediction error against horizon" in done.stderr and "winner:" in done.stderr
+
+
+def test_cli_refuses_a_missing_store(tmp_path):
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "bench.cli", "bench", "predict", "--store", str(tmp_path / "no.db"),
+                           "--pairs", "0"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "no such store" in done.stderr

@@ -11,7 +11,7 @@ import pytest
 
 from proto import PROTOCOL_VERSION
 from proto.codec import decode_server, encode
-from proto.messages import Camera, Delta, FrameReport, Hello, Welcome
+from proto.messages import Camera, Delta, FrameReport, Hello, Ping, Pong, Welcome
 from server.scene.store import TREES, SceneStore
 from server.select import solvers
 from server.session import Session
@@ -31,8 +31,9 @@ def _session(city, solver: str, budget: float = 0.02) -> Session:
     s = Session(city, f"s-{solver}")
     hello = Hello(protocol=PROTOCOL_VERSION, scene=next(iter(city)), viewport=[640, 360], fov_y=60.0,
                   target_frame_time=budget, solver=solver)
-    (welcome,) = [decode_server(encode(m)) for m in s.receive(encode(hello), 0.0)]
-    assert isinstance(welcome, Welcome) and welcome.solver == solver
+    welcome, ping = [decode_server(encode(m)) for m in s.receive(encode(hello), 0.0)]
+    assert isinstance(welcome, Welcome) and welcome.solver == solver and isinstance(ping, Ping)
+    s.receive(encode(Pong(id=ping.id, sent=ping.sent, t=0.0)), 0.0)  # one clock, no delay
     return s
 
 
@@ -43,9 +44,14 @@ def _step(s: Session, city, t: float, turn_deg: float = 0.0, forward_m: float = 
     rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
     pose = dict(eye=(eye + forward_m * fwd).tolist(), forward=(rot @ fwd).tolist(), up=up.tolist())
     s.receive(encode(Camera(t=t, **pose)), now=t)
-    (delta,) = [decode_server(encode(m)) for m in s.poll(t)]
-    assert isinstance(delta, Delta)
-    return delta
+    now = t
+    for _ in range(100):  # the next delta comes at the pipeline's deadline (pings may come first)
+        now = max(now, s.next_deadline())
+        found = [m for m in (decode_server(encode(m)) for m in s.poll(now)) if isinstance(m, Delta)]
+        if found:
+            (delta,) = found
+            return delta
+    raise AssertionError("no delta came due")
 
 
 def _ancestors(index, objects: np.ndarray) -> set[int]:
