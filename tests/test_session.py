@@ -185,3 +185,31 @@ def test_any_sequence_of_frames_keeps_the_session_sound(scenes, frames, gaps):
                 assert m.predicted_cost <= m.budget * (1 + 1e-9)
     assert s.state is SessionState.ACTIVE
     assert np.isfinite(s.cost.c_vertex) and s.cost.c_vertex > 0
+
+
+def test_bad_pongs_and_acks_get_error_frames_and_harm_nothing(scenes):
+    s = _open(scenes)
+    s.receive(_camera(scenes), now=0.0)
+    (first,) = _deltas(s.poll(0.0))
+    resident = s._resident.copy()
+    offset, rtt = s.clock.offset, s.clock.rtt
+    bad = [
+        msgpack.packb({"type": "pong", "id": 1, "sent": float("nan"), "t": 0.0}),
+        msgpack.packb({"type": "pong", "id": -1, "sent": 0.0, "t": 0.0}),
+        msgpack.packb({"type": "ack", "seq": 1, "t": float("inf")}),
+        msgpack.packb({"type": "ack", "seq": 1, "t": 0.0, "rejected": [-3]}),
+        msgpack.packb({"type": "ack", "seq": "one", "t": 0.0}),
+    ]
+    for data in bad:
+        (err,) = _wire(s.receive(data, now=0.1))
+        assert err.code == "invalid"
+    # Well-formed but meaningless: a pong for a ping never sent, an ack naming reps beyond the scene.
+    assert s.receive(encode(Pong(id=99, sent=-50.0, t=5.0)), now=0.1) == []
+    from proto.messages import Ack
+
+    assert s.receive(encode(Ack(seq=77, t=0.2, rejected=[10**9])), now=0.2) == []
+    assert (s._resident == resident).all() and s.clock.offset == offset and s.clock.rtt == rtt
+    # A real refusal unmarks the rep in the mirror, so it is sent again when next needed.
+    refused = first.add[0].rep
+    s.receive(encode(Ack(seq=first.seq, t=0.1, rejected=[refused])), now=0.1)
+    assert not s._resident[refused] and s.stats["errors"] == len(bad) and s.state is SessionState.ACTIVE

@@ -215,7 +215,7 @@ class MorphScheduler:
             key,
             np.where(up, p_level, level),
             level,
-            np.where(up, switch, switch).astype(np.float64),
+            np.full(key.size, float(switch)),
             np.where(up, t_up, switch).astype(np.float64),
         )
         # What is drawn from start on: the previous plan's objects until switch (as overridden), then the new.
