@@ -156,12 +156,17 @@ class Renderer:
 
     morph_targets = staticmethod(morph_targets)
 
-    def __init__(self, width: int, height: int, *, fov_y: float = 60.0, backend: str | None = "egl") -> None:
-        try:
-            kwargs = {"backend": backend} if backend else {}
-            self.ctx = moderngl.create_standalone_context(require=330, **kwargs)
-        except Exception as exc:
-            raise RendererError(f"cannot create a GL context ({exc}); {_EGL_HINT}") from exc
+    def __init__(self, width: int, height: int, *, fov_y: float = 60.0, backend: str | None = "egl",
+                 ctx: moderngl.Context | None = None) -> None:
+        self._own_ctx = ctx is None
+        if ctx is not None:
+            self.ctx = ctx  # a window's context (``client.window``): drawn offscreen, then blitted
+        else:
+            try:
+                kwargs = {"backend": backend} if backend else {}
+                self.ctx = moderngl.create_standalone_context(require=330, **kwargs)
+            except Exception as exc:
+                raise RendererError(f"cannot create a GL context ({exc}); {_EGL_HINT}") from exc
         self.width, self.height, self.fov_y = int(width), int(height), float(fov_y)
         self._color = self.ctx.renderbuffer((self.width, self.height))
         self._depth = self.ctx.depth_renderbuffer((self.width, self.height))
@@ -369,7 +374,8 @@ class Renderer:
         self.fbo.release()
         self._color.release()
         self._depth.release()
-        self.ctx.release()
+        if self._own_ctx:
+            self.ctx.release()
 
     def __enter__(self) -> "Renderer":
         return self

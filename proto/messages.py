@@ -31,13 +31,21 @@ __all__ = [
     "Ack",
     "Pose",
     "TourKey",
+    "ModelAdd",
+    "AlgorithmTerms",
+    "ALGORITHMS",
     "ClientMessage",
     "ServerMessage",
     "CLIENT_TYPES",
     "SERVER_TYPES",
 ]
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
+
+#: Rendering algorithms (Funkhouser & Séquin's R), cheapest first; an index into this is an ``algorithm``.
+ALGORITHMS = ("flat", "lit", "textured")
+Algorithm = Annotated[int, Field(ge=0, lt=len(ALGORITHMS))]
+AlgorithmName = Literal["flat", "lit", "textured"]
 
 #: Coordinates beyond this are refused: they would lose all precision in float32.
 MAX_COORD = 1.0e7
@@ -110,6 +118,17 @@ class Hello(_Message):
     #: Navigation limits θ (m/s) and ω (degrees/s) the conservative camera assumes; None: the maxima observed.
     max_speed: Annotated[float, Field(gt=0.0, le=1.0e4)] | None = None
     max_turn: Annotated[float, Field(gt=0.0, le=3600.0)] | None = None
+    #: Bytes of representation payload (``len(geometry)`` of each ``RepresentationAdd``) the client keeps;
+    #: None: the server's default. The server's mirror never exceeds it; the client refuses what would.
+    cache_bytes: Annotated[int, Field(ge=1 << 16, le=1 << 40)] | None = None
+    #: Rendering algorithms the client offers (``ALGORITHMS``); the selection picks one per representation.
+    algorithms: Annotated[list[AlgorithmName], Field(min_length=1, max_length=3)] = ["flat"]
+
+    @model_validator(mode="after")
+    def _distinct(self) -> "Hello":
+        if len(set(self.algorithms)) != len(self.algorithms):
+            raise ValueError("algorithms must not repeat")
+        return self
 
 
 class Camera(Pose):
@@ -129,12 +148,37 @@ class Pong(_Message):
 
 
 class Ack(_Message):
-    """A delta has arrived (client time ``t``); ``rejected`` lists its representations the client refused."""
+    """A delta has arrived (client time ``t``) and was applied; what the client holds now.
+
+    ``rejected`` lists the delta's representations the client refused (a bad
+    payload, or one that would overflow its cache budget). ``held`` and
+    ``digest`` (``proto.manifest.digest``) describe every representation the
+    client holds after applying it, so the server can check its mirror.
+    """
 
     type: Literal["ack"] = "ack"
     seq: Count
     t: Time
     rejected: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
+    held: Annotated[int, Field(ge=-1, le=MAX_LIST)] = -1
+    digest: Annotated[int, Field(ge=0, lt=1 << 64)] = 0
+    held_bytes: Annotated[int, Field(ge=0, le=1 << 42)] = 0
+
+
+class AlgorithmTerms(_Message):
+    """A frame's work per rendering algorithm (index into ``ALGORITHMS``): the F&S cost model's inputs."""
+
+    triangles: Annotated[list[Count], Field(max_length=len(ALGORITHMS))] = []
+    vertices: Annotated[list[Count], Field(max_length=len(ALGORITHMS))] = []
+    pixels: Annotated[list[Count], Field(max_length=len(ALGORITHMS))] = []
+    draws: Annotated[list[Count], Field(max_length=len(ALGORITHMS))] = []
+
+    @model_validator(mode="after")
+    def _columns(self) -> "AlgorithmTerms":
+        n = len(self.triangles)
+        if not (len(self.vertices) == len(self.pixels) == len(self.draws) == n):
+            raise ValueError("per-algorithm columns must have equal lengths")
+        return self
 
 
 class FrameReport(_Message):
@@ -148,6 +192,16 @@ class FrameReport(_Message):
     vertices: Count
     draws: Count
     selection: Annotated[int, Field(ge=-1, lt=1 << 31)] = -1
+    #: Covered pixels (samples passed the depth test), 0 when not measured
+    pixels: Count = 0
+    #: Point splats drawn (vegetation)
+    splats: Count = 0
+    #: GPU time of the frame from a timer query, None where the driver's values are not trustworthy
+    gpu_time: Annotated[float, Field(ge=0.0, le=60.0)] | None = None
+    #: Client CPU seconds spent preparing and submitting the frame (outside the GPU's work)
+    cpu_time: Annotated[float, Field(ge=0.0, le=60.0)] = 0.0
+    #: The same work split by rendering algorithm (None: all of it flat)
+    terms: AlgorithmTerms | None = None
 
 
 # --------------------------------------------------------------------------- server → client
@@ -186,6 +240,15 @@ class RepresentationAdd(_Message):
     geometry: Annotated[bytes, Field(max_length=1 << 28)]
     #: ``proto.morph`` map of this level's vertices onto the previous level's, when one exists
     morph: Annotated[bytes, Field(max_length=1 << 26)] | None = None
+    #: "mesh": ``geometry`` is ``proto.geometry``; "trees": a tree group's ``proto.points`` instance list
+    kind: Literal["mesh", "trees"] = "mesh"
+
+
+class ModelAdd(_Message):
+    """A tree model the client lacks: prefix-ordered splats (``proto.points``), shared by tree groups."""
+
+    model: Annotated[int, Field(ge=0, lt=1 << 16)]
+    points: Annotated[bytes, Field(max_length=1 << 28)]
 
 
 class Morphs(_Message):
@@ -235,6 +298,10 @@ class Delta(_Message):
     add: Annotated[list[RepresentationAdd], Field(max_length=MAX_LIST)] = []
     drop: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
     selection: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
+    #: Rendering algorithm of each selected representation (aligned with ``selection``; empty: all flat)
+    algorithm: Annotated[list[Algorithm], Field(max_length=MAX_LIST)] = []
+    #: Tree models to keep (sent once per session, never dropped)
+    models: Annotated[list[ModelAdd], Field(max_length=1 << 16)] = []
     budget: Annotated[float, Field(ge=0.0)] = 0.0
     predicted_cost: Annotated[float, Field(ge=0.0)] = 0.0
     cost_coeff: Annotated[float, Field(ge=0.0)] = 0.0
@@ -250,6 +317,8 @@ class Delta(_Message):
             raise ValueError("t1 must not precede t0")
         if self.start is not None and self.start > self.t0:
             raise ValueError("start must not follow t0")
+        if self.algorithm and len(self.algorithm) != len(self.selection):
+            raise ValueError("algorithm must be empty or aligned with selection")
         if len(self.vegetation) != len(self.resolution):
             raise ValueError("vegetation and resolution must have equal lengths")
         if any(x > 1.0 for x in self.ramps.level_from) or any(x > 1.0 for x in self.ramps.level_to):
