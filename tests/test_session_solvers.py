@@ -81,8 +81,12 @@ def test_each_solver_serves_a_session(city, name):
         assert sel.size > 0 and set(sel.tolist()) <= held  # only what the client holds is drawn
         objects = index.rep_object[sel]
         assert np.unique(objects).size == sel.size  # one representation per object
-        assert not (index.object_kind[objects] == TREES).any()  # the client has no splat renderer yet
+        assert not (index.object_kind[objects] == TREES).any()  # tree groups travel as vegetation, not selection
         recount = float(index.rep_vertices[sel].sum()) * delta.cost_coeff
+        veg = np.asarray(delta.vegetation, np.int64)
+        assert (index.object_kind[index.rep_object[veg]] == TREES).all()
+        # The mixed solver's tree groups cost their splats at their resolution (the client draws them now).
+        recount += float((index.rep_vertices[veg] * np.asarray(delta.resolution)).sum()) * delta.cost_coeff
         assert recount == pytest.approx(delta.predicted_cost, rel=1e-6)
         if name not in BASELINES:
             assert delta.predicted_cost <= delta.budget * (1 + 1e-9)

@@ -13,7 +13,7 @@ view (motion), Feedback's threshold — is a ``Memory`` it owns.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -180,28 +180,54 @@ class Choice:
     stats: dict
     x: np.ndarray | None = None  # vegetation resolutions (mixed solver), one per visible tree group
     x_reps: np.ndarray | None = None  # the tree groups' representations, aligned with x
+    algorithm: np.ndarray | None = None  # (s,) rendering algorithm of each of reps (None: all flat)
+    pixels: float = 0.0  # estimated pixels the drawn objects cover (box area over the sampled cameras)
 
 
-def _options(lv: Levels, rows: np.ndarray):
-    """(v, K) representation ids, validity, faces and vertices of the given rows' levels."""
+def _options(lv: Levels, rows: np.ndarray, algorithms: int = 1):
+    """(v, K·R) representation ids, validity, faces and vertices of the given rows' options.
+
+    Option k is level k // R drawn with the k % R-th offered rendering algorithm
+    (F&S's tuples (O, L, R)); with R = 1 options are levels.
+    """
     count = lv.rep_count[rows].astype(np.int64)
     k = int(count.max()) if count.size else 1
     slot = np.arange(k)[None, :]
     valid = slot < count[:, None]
     rep = np.where(valid, lv.rep_first[rows, None].astype(np.int64) + slot, 0)
-    return rep, valid, np.where(valid, lv.rep_faces[rep], 0), np.where(valid, lv.rep_vertices[rep], 0)
+    faces, vertices = np.where(valid, lv.rep_faces[rep], 0), np.where(valid, lv.rep_vertices[rep], 0)
+    if algorithms > 1:
+        rep, valid, faces, vertices = (np.repeat(a, algorithms, axis=1) for a in (rep, valid, faces, vertices))
+    return rep, valid, faces, vertices
 
 
-def _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors):
-    """Per visible row: (v, K) benefit and cost of each level, with the F&S factors the inputs allow.
+def _tuple_cost(cost_model, faces, vertices, pixels, algorithm):
+    """(v, K) seconds per option: the model's F&S terms where it has them, else c_vertex · vertices."""
+    terms = getattr(cost_model, "predict_terms", None)
+    if terms is None:
+        return cost_model.predict(vertices)
+    return terms(faces, vertices, pixels, algorithm, 1.0)
+
+
+def _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=(0,), pixel_scale=1.0):
+    """Per visible row: (v, K) benefit and cost of each option, with the F&S factors the inputs allow.
 
     Over several cameras (an ``Interval``) benefit is their weighted sum, a row
     outside a camera's frustum gaining nothing from it, and size the mean over
-    the sampled ones; cost is the maximum over the sampled cameras (view
-    independent for now: c_vertex · vertices).
+    the sampled ones; cost is the maximum over the sampled cameras — with a
+    fitted fill term it depends on the pixels covered, estimated as the box's
+    screen area × ``pixel_scale`` (the measured share of box area really covered).
+    ``algorithms`` are the offered rendering algorithms (indices into
+    ``proto.messages.ALGORITHMS``); option k draws level k // R with ``algorithms[k % R]``.
     """
     lo, hi = lv.object_lo[rows], lv.object_hi[rows]
-    rep, valid, faces, vertices = _options(lv, rows)
+    r = len(algorithms)
+    rep, valid, faces, vertices = _options(lv, rows, r)
+    alg = np.asarray(algorithms, np.int64)[np.arange(faces.shape[1]) % r][None, :]
+    if r > 1 or tuple(algorithms) != (0,):
+        from proto.messages import ALGORITHMS
+
+        factors = replace(factors, algorithm_names=tuple(ALGORITHMS[a] for a in algorithms))
     previous = None
     if memory is not None and memory.option is not None:
         previous = memory.option[lv.ids[rows]] if lv.ids is not None else memory.option[rows]
@@ -209,6 +235,7 @@ def _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors):
     benefit = np.zeros(faces.shape)
     size_sum = np.zeros(rows.size)
     n_sampled = 0
+    cost = None
     for cam in cams:
         wide, clip = cam.view, cam.clip
         inside = cull_boxes(lo, hi, cam.planes) if len(cams) > 1 else np.ones(rows.size, bool)
@@ -218,15 +245,20 @@ def _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors):
         if memory is not None and memory.view is not None and memory.t is not None and t is not None and t > memory.t:
             speed = screen_speed(lo, hi, clip, memory.view.matrix(), t - memory.t, wide.width, wide.height)
         b = benefit_matrix(
-            size, faces, factors=factors, vertices=vertices, object_class=klass, importance_table=scene.importance,
-            offset=centre_offset(lo, hi, clip, wide.width, wide.height), speed=speed, previous=previous,
+            size, faces, algorithms=r, factors=factors, vertices=vertices, object_class=klass,
+            importance_table=scene.importance, offset=centre_offset(lo, hi, clip, wide.width, wide.height),
+            speed=speed, previous=previous,
         )
         benefit += cam.weight * b
         if cam.sampled:
             size_sum += size
             n_sampled += 1
+            c = _tuple_cost(cost_model, faces, vertices, (size * pixel_scale)[:, None], alg)
+            cost = c if cost is None else np.maximum(cost, c)
+    if cost is None:
+        cost = _tuple_cost(cost_model, faces, vertices, np.zeros((rows.size, 1)), alg)
     benefit = np.where(valid, benefit, 0.0)
-    cost = np.where(valid, cost_model.predict(vertices), np.inf)
+    cost = np.where(valid, cost, np.inf)
     return size_sum / max(n_sampled, 1), rep, valid, faces, benefit, cost, previous
 
 
@@ -250,8 +282,15 @@ def select(
     t: float | None = None,
     factors: BenefitFactors | None = None,
     limit: Limit = NO_LIMIT,
+    algorithms: tuple = (0,),
+    pixel_scale: float = 1.0,
 ) -> Choice:
     """Choose representations for ``view`` within ``budget`` seconds with the solver called ``solver``.
+
+    ``algorithms`` are the rendering algorithms the client offers (indices into
+    ``proto.messages.ALGORITHMS``): the flat solvers choose one per drawn
+    object (``Choice.algorithm``); the hierarchical solver draws the first.
+    ``pixel_scale`` turns box screen area into covered pixels for a fill-rate cost term.
 
     ``view`` is one camera, or an ``Interval`` of predicted cameras and the
     conservative one. ``margin_deg`` widens the field of view of the (sampled)
@@ -268,8 +307,11 @@ def select(
         if scene.hierarchy is None:
             raise ValueError("the hierarchical solver needs the scene's hierarchical view (Scene.of)")
         choice = _select_hierarchical(scene, cams, cost_model, budget, solve, memory, factors, limit)
+        if tuple(algorithms) != (0,):
+            choice = replace(choice, algorithm=np.full(choice.reps.size, int(algorithms[0]), np.int64))
     else:
-        choice = _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors, limit)
+        choice = _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors, limit,
+                              tuple(int(a) for a in algorithms), float(pixel_scale))
     if memory is not None:
         memory.view, memory.t = cams[0].view, cams[0].t
     return choice
@@ -284,7 +326,8 @@ def _remember(memory: Memory | None, scene: Scene, ids: np.ndarray, option: np.n
     memory.option[ids] = option
 
 
-def _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors, limit) -> Choice:
+def _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors, limit,
+                 algorithms=(0,), pixel_scale=1.0) -> Choice:
     lv = scene.flat
     rows = np.nonzero(_cull(lv, cams))[0]
     smooth, trees = None, np.zeros(0, np.int64)
@@ -293,7 +336,8 @@ def _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors
     if rows.size == 0 and trees.size == 0:
         _remember(memory, scene, np.zeros(0, np.int64), np.zeros(0, np.int64))
         return Choice(np.zeros(0, np.int64), 0.0, 0.0, 0, {"stopped": "done"})
-    size, rep, valid, faces, benefit, cost, previous = _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors)
+    size, rep, valid, faces, benefit, cost, previous = _benefit_cost(lv, rows, scene, cams, cost_model, memory,
+                                                                     factors, algorithms, pixel_scale)
     cand = Candidates.of(benefit, cost, valid, size=size, faces=faces,
                          previous=None if previous is None else previous.astype(np.int64))
     state = dict(memory.solver) if memory is not None else {}
@@ -304,6 +348,9 @@ def _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors
     result = solve(cand, budget, limit=limit, state=state, **kw)
     drawn = result.level >= 0
     reps = rep[drawn, result.level[drawn]]
+    algorithm = None
+    if algorithms != (0,):
+        algorithm = np.asarray(algorithms, np.int64)[result.level[drawn] % len(algorithms)]
     if memory is not None:
         # A session keeps one solver, so its threshold (Feedback's pixels, the incremental value θ) is its own.
         threshold = result.stats.get("threshold")
@@ -316,11 +363,9 @@ def _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors
     if result.x is not None:
         stats["vegetation"] = int(trees.size)
         stats["vegetation_x_mean"] = float(result.x.mean()) if result.x.size else 0.0
-        # The client has no point-splat renderer yet: the continuous part keeps its share of the
-        # budget, but what the client is predicted to spend is the discrete part it draws.
-        cost_drawn = float(stats.get("discrete_cost", result.cost))
     return Choice(reps=reps, cost=cost_drawn, benefit=result.benefit, visible=int(rows.size + trees.size),
-                  stats=stats, x=result.x, x_reps=_group_reps(scene, trees) if result.x is not None else None)
+                  stats=stats, x=result.x, x_reps=_group_reps(scene, trees) if result.x is not None else None,
+                  algorithm=algorithm, pixels=float(size[drawn].sum()))
 
 
 def _group_reps(scene: Scene, rows: np.ndarray) -> np.ndarray:
@@ -351,7 +396,8 @@ def _smooth(scene, cams, cost_model):
     if scene.importance is not None and veg.object_class is not None:
         weight = weight * scene.importance[veg.object_class[rows]]
     points = veg.rep_vertices[veg.rep_first[rows] + veg.rep_count[rows] - 1]
-    slope = np.maximum(cost_model.predict(points), 1e-12)
+    price = getattr(cost_model, "splat_cost", cost_model.predict)  # the fitted model prices splats itself
+    slope = np.maximum(price(points), 1e-12)
     return Smooth.of(weight, slope), rows
 
 
