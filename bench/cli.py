@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 import typer
 
@@ -242,6 +242,42 @@ def bench_predict(
         print(json.dumps(out))
 
 
+@bench_app.command("render")
+def bench_render(
+    store: Optional[Path] = typer.Option(None, help="the store whose tour measures the cost model "
+                                         "(default: the auditorium, built if missing)"),
+    duration: float = typer.Option(20.0, help="seconds of the tour the cost model is measured over"),
+    quick: bool = typer.Option(False, help="fewer sizes and repeats, and no 10k-representation row"),
+    no_tour: bool = typer.Option(False, "--no-tour", help="skip the cost-model measurement (no server)"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
+) -> None:
+    """Frame time against triangles, client CPU per frame against drawn representations, and the online
+    cost model's held-out error over the auditorium tour (each against a reference measured in the same run)."""
+    from bench.render import run as run_render
+
+    if duration <= 2.5:
+        raise typer.BadParameter("the tour needs more than the 2 s warm-up", param_hint="--duration")
+    if store is not None and not store.exists():
+        raise typer.BadParameter(f"no such store: {store}", param_hint="--store")
+    if store is None and not no_tour:
+        from server.scene.catalog import build_named
+        from server.scene.store import SCHEMA_VERSION
+
+        store = DEFAULT_CACHE / f"auditorium-s0-v{SCHEMA_VERSION}.db"
+        if not store.exists():
+            store.parent.mkdir(parents=True, exist_ok=True)
+            bar, tick = _progress_bar("building auditorium", as_json)
+            with bar:
+                build_named("auditorium", store, seed=0, progress=tick)
+    bar, tick = _progress_bar("bench render", quiet=as_json)
+    with bar:
+        result = run_render(None if no_tour else store, duration=duration, quick=quick, progress=tick)
+    for line in result["lines"]:
+        typer.echo(line, err=as_json)
+    if as_json:
+        print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
+
+
 @app.command()
 def serve(
     stores: list[Path] = typer.Argument(..., help="scene stores to serve, each under its recorded name"),
@@ -287,7 +323,8 @@ def _check_solver(name: str) -> None:
 def client(
     url: str = typer.Argument("ws://127.0.0.1:8765/ws", help="the server's websocket URL"),
     scene: str = typer.Option("demo", help="scene name"),
-    duration: float = typer.Option(10.0, help="seconds to run"),
+    duration: Optional[float] = typer.Option(None, help="seconds to run (default: 10; with --window, until "
+                                             "the window is closed)"),
     target_ms: float = typer.Option(50.0, help="target frame time in milliseconds"),
     width: int = typer.Option(640),
     height: int = typer.Option(360),
@@ -295,15 +332,31 @@ def client(
     solver: str = typer.Option("greedy", help=SOLVER_HELP),
     predict: bool = typer.Option(True, help="ask the server to select for the predicted camera path"),
     morph: bool = typer.Option(True, help="ask for geomorph schedules (off: levels switch at once)"),
+    window: bool = typer.Option(False, "--window", help="show the frames in a window (needs a display; "
+                                "xvfb-run for a virtual one). Keys: WASD move, Q/E down/up, drag looks, "
+                                "Shift faster, Tab fly/walk, F false colour, P screenshot, Esc quits"),
+    navigate: Literal["tour", "fly", "walk"] = typer.Option(
+        "tour", help="who moves the camera: the scene's tour, or you flying or walking (needs --window)"),
+    false_colour: bool = typer.Option(False, "--false-colour", help="draw each object in a false colour"),
 ) -> None:
-    """Run the headless client over the scene's tour and print its frame times."""
+    """Run the client over the scene's tour (headless, or in a window you can navigate) and print its frame times."""
     from client.app import run_client
+    from client.window import WindowError
 
     _check_solver(solver)
-    run = run_client(
-        url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3, screenshot=screenshot,
-        solver=solver, predict=predict, morph=morph,
-    )
+    if navigate != "tour" and not window:
+        raise typer.BadParameter("fly and walk are driven by keys and mouse: add --window", param_hint="--navigate")
+    if duration is None:
+        duration = float("inf") if window else 10.0
+    try:
+        run = run_client(
+            url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3,
+            screenshot=screenshot, solver=solver, predict=predict, morph=morph, window=window, navigate=navigate,
+            false_colour=false_colour,
+        )
+    except WindowError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
     from bench.demo import summarize
 
     typer.echo(json.dumps(summarize(run, target_ms / 1e3).as_dict()))

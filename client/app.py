@@ -34,7 +34,7 @@ from proto.errors import ProtocolError
 from proto.messages import PROTOCOL_VERSION, Ack, Camera, Delta, Error, FrameReport, Hello, Ping, Pong, Welcome
 
 from .cache import ResidentCache
-from .navigation import Tour
+from .navigation import Navigator, Tour
 from .renderer import Renderer
 from .schedule import Schedule
 
@@ -91,6 +91,8 @@ class ClientRun:
     late : schedules that arrived after their window opened (rebased so nothing jumped)
     unmorphed : morphing draws made at full detail for want of morph targets
     trace : with ``trace=True``, every frame's drawn levels and weights
+    refused_full : representations refused because they would have taken the cache over its budget
+    peak_cache_bytes : the most payload bytes the cache held after any delta
     close_reason : why the connection ended early, ``None`` if the client ended it
     """
 
@@ -106,6 +108,8 @@ class ClientRun:
     unmorphed: int = 0
     pings: int = 0
     trace: list[FrameTrace] = field(default_factory=list)
+    refused_full: int = 0
+    peak_cache_bytes: int = 0
 
 
 @dataclass(frozen=True)
@@ -180,9 +184,10 @@ class _Loop:
     """The main loop's state: cache, renderer, inbox and the run being recorded."""
 
     def __init__(self, run: ClientRun, renderer: Renderer, inbox: "queue.Queue[_Item]",
-                 ws: ClientConnection | None = None) -> None:
+                 ws: ClientConnection | None = None, cache_bytes: int | None = None) -> None:
         self.run, self.renderer, self.inbox, self.ws = run, renderer, inbox, ws
-        self.cache = ResidentCache()
+        self.cache = ResidentCache(cache_bytes)  # the Hello's cache_bytes: the server's mirror keeps to it
+        self.splats = None  # the splat layer (client.splats) for tree groups and models, when there is one
         self.schedule = Schedule()
         self.vegetation = Schedule(continuous=True)
         self.last: Delta | None = None
@@ -194,17 +199,34 @@ class _Loop:
             delta = item.delta
             self.run.deltas_received += 1
             t0 = time.perf_counter()
-            to_upload, to_free = self.cache.apply(delta)
-            for rep in to_free:
+            changes = self.cache.apply(delta)
+            for rep in changes.frees:
                 self.renderer.free(rep)
-            for rep, geometry in to_upload:
+            for rep, geometry in changes.uploads:
                 self.renderer.upload(rep, geometry, object_id=self.cache.resident[rep].object)
-            self._schedule(delta, item.t)
+            if self.splats is not None:
+                for model, points in changes.models:
+                    self.splats.add_model(model, points)
+                for rep in changes.group_frees:
+                    self.splats.free_group(rep)
+                for rep, instances in changes.groups:
+                    self.splats.add_group(rep, instances)
+            self.run.refused_full = self.cache.refused_full
+            self.run.peak_cache_bytes = max(self.run.peak_cache_bytes, self.cache.held_bytes)
+            m, scheduled = delta.morphs, delta
+            held = self.cache.holds(np.asarray(m.rep, np.int64))
+            if not held.all():  # a ramp to a rep the cache lacks (refused, or beyond the budget) can't be drawn
+                keep = np.nonzero(held)[0].tolist()
+                cols = {k: [getattr(m, k)[i] for i in keep] for k in ("rep", "level_from", "level_to", "t0", "t1")}
+                scheduled = delta.model_copy(update={"morphs": m.model_copy(update=cols)})
+            self._schedule(scheduled, item.t)
             self.upload_time += time.perf_counter() - t0
             self.last = delta
             if self.ws is not None:
                 try:
-                    self.ws.send(encode(Ack(seq=delta.seq, t=item.t, rejected=self.cache.last_rejected)))
+                    cache = self.cache  # what it holds now, so the server can check its mirror
+                    self.ws.send(encode(Ack(seq=delta.seq, t=item.t, rejected=changes.rejected, held=cache.held,
+                                            held_bytes=cache.held_bytes, digest=cache.digest)))
                 except ConnectionClosed as exc:
                     self.closed, self.run.close_reason = True, f"connection lost while acking: {exc}"
         elif isinstance(item, Error):
@@ -280,6 +302,9 @@ def run_client(
     predict: bool = True,
     morph: bool = True,
     trace: bool = False,
+    window: bool = False,
+    navigate: str = "tour",
+    false_colour: bool = False,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
@@ -287,10 +312,36 @@ def run_client(
     possible); ``timeout`` bounds connecting and waiting for the welcome.
     ``predict`` and ``morph`` ask the server for path prediction and geomorphing;
     ``trace`` records every frame's drawn levels and weights in ``ClientRun.trace``.
-    Raises ``ClientError`` if the session cannot be opened.
+    ``window`` shows the frames in a window (``client.window``; ends early when
+    it is closed) and ``navigate`` ("tour", "fly", "walk") says who moves the
+    camera there: the scene's tour, or the user (``client.navigation.Navigator``,
+    whose limits go out in the ``Hello``). ``false_colour`` sets ``Renderer.false_colour``.
+    Raises ``ClientError`` if the session cannot be opened, ``client.window.WindowError``
+    if the window cannot.
     """
+    if navigate not in ("tour", "fly", "walk"):
+        raise ValueError(f"navigate must be tour, fly or walk, got {navigate!r}")
+    if navigate != "tour" and not window:
+        raise ValueError("interactive navigation (fly, walk) needs window=True")
     width, height = (int(v) for v in viewport)
-    renderer = Renderer(width, height, fov_y=fov_y, backend=backend)
+    view = None
+    if window:
+        from .window import Window
+
+        view = Window(width, height)
+        try:
+            renderer = Renderer(width, height, fov_y=fov_y, ctx=view.ctx)
+        except BaseException:
+            view.release()
+            raise
+    else:
+        renderer = Renderer(width, height, fov_y=fov_y, backend=backend)
+    if false_colour:
+        setattr(renderer, "false_colour", True)
+    navigator = Navigator(mode=navigate) if navigate != "tour" else None
+    limits = {} if navigator is None else {"max_speed": navigator.max_speed, "max_turn": navigator.max_turn}
+    if view is not None:
+        view.controller = navigator
     start = time.monotonic()  # the client clock: every t is seconds since here
     try:
         try:
@@ -301,6 +352,7 @@ def run_client(
             hello = Hello(
                 protocol=PROTOCOL_VERSION, scene=scene, viewport=[width, height], fov_y=fov_y,
                 target_frame_time=target_frame_time, solver=solver, client=CLIENT_NAME, predict=predict, morph=morph,
+                **limits,
             )
             welcome, nbytes = _handshake(ws, hello, timeout)
             counter = [nbytes, 0]
@@ -310,7 +362,8 @@ def run_client(
                                         daemon=True)
             receiver.start()
             loop = _Loop(run, renderer, inbox, ws)
-            _frames(ws, loop, welcome, start, duration, 1.0 / max_fps if max_fps else 0.0, on_frame, trace)
+            _frames(ws, loop, welcome, start, duration, 1.0 / max_fps if max_fps else 0.0, on_frame, trace,
+                    window=view, navigator=navigator)
             if screenshot is not None:
                 renderer.save_png(screenshot)
         receiver.join(timeout)
@@ -330,6 +383,8 @@ def run_client(
         return run
     finally:
         renderer.release()
+        if view is not None:
+            view.release()
 
 
 def _frames(
@@ -341,9 +396,18 @@ def _frames(
     period: float,
     on_frame: Callable[[FrameRecord], None] | None,
     trace: bool = False,
+    *,
+    window=None,
+    navigator: Navigator | None = None,
 ) -> None:
-    """The frame loop proper; returns after ``duration`` s or when the connection ends."""
+    """The frame loop proper; returns after ``duration`` s, when the connection ends or the window closes.
+
+    With a ``navigator`` the user's input moves the camera, from the welcome's start pose.
+    """
     tour = Tour(welcome.tour) if welcome.tour else Tour([{"t": 0.0, **welcome.start.model_dump()}])
+    if navigator is not None:
+        navigator.place(welcome.start)
+        tour = navigator
     bounds = welcome.bounds
     cache, renderer = loop.cache, loop.renderer
     first = time.monotonic()
@@ -380,4 +444,9 @@ def _frames(
         if on_frame is not None:
             on_frame(record)
         frame += 1
+        if window is not None:
+            window.present(renderer)
+            window.poll()
+            if window.should_close:
+                break
         loop.pump(now + period if period > 0 else None)

@@ -10,8 +10,12 @@ ldconfig -p | grep -q 'libEGL_mesa\.so' || need_apt+=(libegl-mesa0)
 ldconfig -p | grep -q 'libEGL\.so\.1' || need_apt+=(libegl1)
 ldconfig -p | grep -q 'libGL\.so\.1' || need_apt+=(libgl1)
 ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1 || need_apt+=(libgl1-mesa-dri)
+# A virtual X display for `walkstream client --window` without a screen (xvfb-run), and the window tests.
+command -v Xvfb >/dev/null 2>&1 || need_apt+=(xvfb)
+command -v xauth >/dev/null 2>&1 || need_apt+=(xauth)
+ldconfig -p | grep -q 'libXtst\.so\.6' || need_apt+=(libxtst6)  # real X input events in the window tests
 if [ ${#need_apt[@]} -gt 0 ]; then
-  echo "bootstrap: installing ${need_apt[*]} (Mesa EGL for headless rendering)" >&2
+  echo "bootstrap: installing ${need_apt[*]} (Mesa EGL for headless rendering, Xvfb for the window)" >&2
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_apt[@]}" >/dev/null

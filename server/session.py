@@ -37,6 +37,7 @@ from pydantic import BaseModel
 
 from proto.codec import decode_client
 from proto.errors import ProtocolError
+from proto.manifest import mix
 from proto.messages import (
     PROTOCOL_VERSION,
     Ack,
@@ -45,6 +46,7 @@ from proto.messages import (
     Error,
     FrameReport,
     Hello,
+    ModelAdd,
     Morphs,
     Ping,
     Pong,
@@ -90,7 +92,7 @@ class SessionConfig:
 
     tau : seconds between selections (Zach's τ)
     margin_deg : extra field of view selected around the view, for the motion within τ
-    cache_bytes : the client's cache budget the server's mirror keeps to
+    cache_bytes : the most payload a client's cache holds, as the mirror keeps it (a hello may ask for less)
     c_vertex : the cost model's first guess, seconds per vertex
     alpha : weight of each measured frame in the cost model's running average
     select_limit : seconds a selection may take; an anytime solver returns its best so far then
@@ -155,6 +157,15 @@ class Session:
         self.late = 0
         self.teleports = 0
         self.acks = 0
+        # The client-cache mirror's counters (see ``_mirror_ack``).
+        self.cache_budget = self.config.cache_bytes
+        self.evicted = 0  # reps the mirror dropped to keep within the budget
+        self.over_budget = 0  # needed reps left unsent for want of budget, summed over deltas
+        self.refused = 0  # reps the client refused (acks' ``rejected``)
+        self.mirror_checks = 0  # acks whose held/held_bytes/digest were compared with the mirror
+        self.mirror_mismatch = 0  # ... and did not match (each triggers a resync)
+        self.resyncs = 0  # deltas that dropped everything and restarted the mirror empty
+        self._held = [0, 0, 0]  # the mirror's count, bytes and digest (set up by the hello)
 
     # ------------------------------------------------------------------ input
 
@@ -213,7 +224,20 @@ class Session:
         self._bounds = np.asarray(index.bounds, np.float64)
         m = index.n_representations
         self._rep_bytes = np.asarray(index.rep_bytes, np.int64)
+        # The client-cache mirror: what the client holds, within the smaller of its budget and ours.
+        self.cache_budget = int(self.config.cache_bytes if hello.cache_bytes is None
+                                else min(hello.cache_bytes, self.config.cache_bytes))
         self._resident = np.zeros(m, dtype=bool)
+        self._sent = np.zeros(m, dtype=bool)  # every rep sent this session: what a resync drops
+        self._mix = mix(np.arange(m))  # each rep's digest term (proto.manifest), so updates are XORs
+        self._held = [0, 0, 0]  # the mirror's count, bytes and digest, kept incrementally
+        self._records: dict[int, _Sent] = {}  # seq → the mirror right after that delta, until acked
+        self._epoch = 0  # acks of seqs before this predate the last resync
+        self._acked = 0  # the last delta acked
+        self._resync = False
+        self._models_sent = False
+        from .scene.store import TREES
+        self._rep_trees = np.asarray(index.object_kind, np.int64)[np.asarray(index.rep_object, np.int64)] == TREES
         self._last_used = np.full(m, -1, dtype=np.int64)
         self._rep_level = np.asarray(index.rep_level, np.int64)
         self._rep_morph = np.asarray(index.rep_morph, bool)
@@ -256,11 +280,67 @@ class Session:
             self.late += 1
             log.info("session %s: delta %d arrived %.3f s after its schedule started (took %s)",
                      self.id, ack.seq, ack.t - start[0], took)
-        if ack.rejected:
-            rejected = np.asarray(ack.rejected, np.int64)
-            rejected = rejected[rejected < self._resident.size]
-            self._resident[rejected] = False  # the mirror follows what the client really holds
+        self._mirror_ack(ack)
         return []
+
+    def _mirror_ack(self, ack: Ack) -> None:
+        """Follow the client's refusals, then check the mirror against what the client says it holds.
+
+        A refused add stays out of the mirror — now, and in the records of the
+        deltas sent since (unless one of them dropped it), so later acks compare
+        exactly. A mismatch means the two sides diverged beyond repair by
+        bookkeeping: the next delta resyncs.
+        """
+        if not self._acked < ack.seq <= self.seq:
+            return  # never sent, or a repeat (acks come in order): nothing to follow
+        self._acked = ack.seq
+        record = self._records.pop(ack.seq, None)
+        if record is None:
+            # From before the last resync: nothing to follow. A record lost to pruning (a client that left
+            # hundreds of deltas unacked), though, may hide refusals: resync rather than trust the mirror.
+            if ack.rejected and ack.seq >= self._epoch and not self._resync:
+                log.warning("session %s: refusals in an ack of delta %d the mirror no longer tracks; resyncing",
+                            self.id, ack.seq)
+                self._begin_resync()
+            return
+        for seq in [s for s in self._records if s < ack.seq]:
+            del self._records[seq]  # acks come in order: those will not come
+        rejected = np.unique(np.asarray(ack.rejected, np.int64))
+        alive = rejected[np.isin(rejected, record.add)]  # only this delta's adds can have been refused
+        if alive.size:
+            self.refused += int(alive.size)
+            record.remove(alive, self._rep_bytes, self._mix)
+            for seq in sorted(self._records):
+                alive = alive[~np.isin(alive, self._records[seq].drop)]  # a later drop ended it anyway
+                if not alive.size:
+                    break
+                self._records[seq].remove(alive, self._rep_bytes, self._mix)
+            self._mark(alive, False)
+        if ack.held < 0:
+            return  # a client that does not report what it holds: nothing to check
+        self.mirror_checks += 1
+        if (ack.held, ack.held_bytes, ack.digest) != (record.held, record.bytes, record.digest):
+            self.mirror_mismatch += 1
+            log.warning("session %s: after delta %d the client holds %d reps, %d bytes (digest %016x); the mirror "
+                        "says %d, %d (%016x); resyncing", self.id, ack.seq, ack.held, ack.held_bytes, ack.digest,
+                        record.held, record.bytes, record.digest)
+            self._begin_resync()
+
+    def _begin_resync(self) -> None:
+        """Make the next delta drop everything ever sent and restart the mirror; acks until then are stale."""
+        self._resync = True
+        self._records.clear()
+        self._epoch = self.seq + 1
+
+    def _mark(self, reps: np.ndarray, held: bool) -> None:
+        """Set reps (each currently the opposite) held or not in the mirror, updating count, bytes and digest."""
+        if reps.size == 0:
+            return
+        sign = 1 if held else -1
+        self._resident[reps] = held
+        self._held[0] += sign * int(reps.size)
+        self._held[1] += sign * int(self._rep_bytes[reps].sum())
+        self._held[2] ^= int(np.bitwise_xor.reduce(self._mix[reps]))
 
     # ------------------------------------------------------------------ timer
 
@@ -362,35 +442,23 @@ class Session:
         tr = self._morph.schedule(key, level.astype(np.float64), start, switch, reset=reset, kind=kind)
         self._drawn = reps
         needed = _expand(tr.needed_key, tr.needed_lo, tr.needed_hi)
-        new = needed[~self._resident[needed]]
-        self._resident[new] = True
-        self._last_used[needed] = self.seq
-        drop = self._evict(keep=needed)
-        store = self.scenes[self.scene_name]
-        blobs = store.geometries(new.tolist()) if new.size else []
-        morph_maps = [None] * new.size
-        if self._morph.morph and new.size:
-            with_map = new[self._rep_morph[new]]
-            maps = dict(zip(with_map.tolist(), store.morphs(with_map.tolist()))) if with_map.size else {}
-            morph_maps = [maps.get(r) for r in new.tolist()]
-        index = store.index
-        add = [
-            RepresentationAdd(rep=int(r), object=int(index.rep_object[r]), level=int(index.rep_level[r]),
-                              geometry=blob, morph=mm)
-            for r, blob, mm in zip(new.tolist(), blobs, morph_maps)
-        ]
-        nbytes = sum(len(b) for b in blobs) + sum(len(m) for m in morph_maps if m)
-        self.bytes_sent += nbytes
-        morphs = Morphs(
-            rep=(tr.key + tr.level_to.astype(np.int64)).tolist(), level_from=tr.level_from.tolist(),
-            level_to=tr.level_to.tolist(), t0=tr.t0.tolist(), t1=tr.t1.tolist(),
-        )
         vegetation, resolution, ramps = [], [], Morphs()
+        drawn_groups = groups = np.zeros(0, np.int64)
         if choice.x is not None and choice.x_reps is not None:
             rt = self._ramp.schedule(choice.x_reps, choice.x, start, switch, reset=reset)
             vegetation, resolution = choice.x_reps.tolist(), np.clip(choice.x, 0.0, 1.0).tolist()
             ramps = Morphs(rep=rt.key.tolist(), level_from=np.clip(rt.level_from, 0, 1).tolist(),
                            level_to=np.clip(rt.level_to, 0, 1).tolist(), t0=rt.t0.tolist(), t1=rt.t1.tolist())
+            # Tree groups drawn now, and those a ramp still draws from the window on, must be resident too.
+            drawn_groups = np.asarray(choice.x_reps, np.int64)[np.asarray(choice.x) > 0]
+            groups = np.union1d(drawn_groups, rt.needed_key[rt.needed_hi > 0]).astype(np.int64)
+        new, drop = self._mirror(np.concatenate([reps, drawn_groups]), np.concatenate([needed, groups]))
+        add, models, nbytes = self._adds(new)
+        self.bytes_sent += nbytes
+        morphs = Morphs(
+            rep=(tr.key + tr.level_to.astype(np.int64)).tolist(), level_from=tr.level_from.tolist(),
+            level_to=tr.level_to.tolist(), t0=tr.t0.tolist(), t1=tr.t1.tolist(),
+        )
         # Keep the timing estimates: this selection's wall time, and (for regular deltas) the size.
         took = time.perf_counter() - began
         self._select_time = max(took, 0.7 * self._select_time + 0.3 * took)
@@ -412,6 +480,7 @@ class Session:
             reset=reset,
             add=add,
             drop=drop.tolist(),
+            models=models,
             selection=reps.tolist(),
             budget=budget,
             predicted_cost=choice.cost,
@@ -422,20 +491,85 @@ class Session:
             ramps=ramps,
         )
 
+    def _mirror(self, selected: np.ndarray, needed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Bring the mirror to what this delta needs, within the budget; returns (reps to add, reps to drop).
+
+        selected : reps the selection draws (meshes, drawn tree groups) — first in line when not all fits
+        needed : every rep the schedule draws from its window on (ramp intermediates, morph sources, …)
+
+        When what is needed alone exceeds the budget, it is sent in priority
+        order (the selection before the rest, coarse before fine, small before
+        large so the most objects show) as far as the budget allows and the rest
+        counted in ``over_budget``: the client never receives more than it can
+        keep, so it never has to refuse for room.
+        """
+        want = np.union1d(needed, selected).astype(np.int64)
+        later = ~np.isin(want, selected)
+        want = want[np.lexsort((self._rep_bytes[want], self._rep_level[want], later))]
+        keep = want
+        sizes = self._rep_bytes[want]
+        if int(sizes.sum()) > self.cache_budget:
+            keep = want[: int(np.searchsorted(np.cumsum(sizes), self.cache_budget, side="right"))]
+        if self._resync:  # the client's holdings are unknown: forget them, send afresh what is kept
+            self._mark(np.nonzero(self._resident)[0], False)
+        new = keep[~self._resident[keep]]
+        self._mark(new, True)
+        self._sent[new] = True
+        self._last_used[want] = self.seq
+        drop = self._evict(keep)
+        if self._resync:
+            # Everything the client may hold but what this delta re-sends (an add and a drop of one rep
+            # in one delta would leave it dropped).
+            drop = np.nonzero(self._sent & ~self._resident)[0]
+            self._resync, self._epoch = False, self.seq
+            self.resyncs += 1
+        self.over_budget += int((~self._resident[want]).sum())
+        self._records[self.seq] = _Sent(*self._held, add=new, drop=drop)
+        if len(self._records) > 256:  # a client that stopped acking must not grow this without bound
+            self._records.pop(min(self._records))
+        return new, drop
+
     def _evict(self, keep: np.ndarray) -> np.ndarray:
-        """Drop least recently selected representations until the client's cache fits its budget."""
-        held = self._resident.copy()
-        total = int(self._rep_bytes[held].sum())
-        if total <= self.config.cache_bytes:
+        """Drop least recently selected representations (never ``keep``) until the mirror fits the budget."""
+        total = self._held[1]
+        if total <= self.cache_budget:
             return np.zeros(0, np.int64)
+        held = self._resident.copy()
         held[keep] = False
         candidates = np.nonzero(held)[0]
         candidates = candidates[np.argsort(self._last_used[candidates], kind="stable")]
         freed = np.cumsum(self._rep_bytes[candidates])
-        n = min(int(np.searchsorted(freed, total - self.config.cache_bytes)) + 1, candidates.size)
+        n = min(int(np.searchsorted(freed, total - self.cache_budget)) + 1, candidates.size)
         drop = candidates[:n]
-        self._resident[drop] = False
+        self._mark(drop, False)
+        self.evicted += int(drop.size)
         return drop
+
+    def _adds(self, new: np.ndarray) -> tuple[list[RepresentationAdd], list[ModelAdd], int]:
+        """The adds for ``new`` (meshes with their morph maps, tree groups' instance lists), the store's tree
+        models with the session's first tree group, and the payload bytes of both."""
+        store = self.scenes[self.scene_name]
+        index = store.index
+        blobs = store.geometries(new.tolist()) if new.size else []
+        trees = self._rep_trees[new]
+        morph_maps = [None] * new.size
+        if self._morph.morph and new.size:
+            with_map = new[self._rep_morph[new] & ~trees]
+            maps = dict(zip(with_map.tolist(), store.morphs(with_map.tolist()))) if with_map.size else {}
+            morph_maps = [maps.get(r) for r in new.tolist()]
+        add = [
+            RepresentationAdd(rep=int(r), object=int(index.rep_object[r]), level=int(index.rep_level[r]),
+                              geometry=blob, morph=mm, kind="trees" if t else "mesh")
+            for r, blob, mm, t in zip(new.tolist(), blobs, morph_maps, trees.tolist())
+        ]
+        models: list[ModelAdd] = []
+        if trees.any() and not self._models_sent:  # the groups' instances name these: sent once, kept
+            self._models_sent = True
+            n = int(index.model_points.shape[0])
+            models = [ModelAdd(model=i, points=b) for i, b in enumerate(store.model_geometries(range(n)))]
+        nbytes = (sum(len(b) for b in blobs) + sum(len(m) for m in morph_maps if m)
+                  + sum(len(m.points) for m in models))
+        return add, models, nbytes
 
     # ------------------------------------------------------------------ state
 
@@ -467,7 +601,32 @@ class Session:
             "late": self.late,
             "teleports": self.teleports,
             "morphs": {k: self.last_stats.get(k, 0) for k in ("up", "down", "collapsed", "switches")},
+            "cache_budget": self.cache_budget,
+            "held_bytes": self._held[1],
+            "evicted": self.evicted,
+            "over_budget": self.over_budget,
+            "refused": self.refused,
+            "mirror_checks": self.mirror_checks,
+            "mirror_mismatch": self.mirror_mismatch,
+            "resyncs": self.resyncs,
         }
+
+
+@dataclass
+class _Sent:
+    """The mirror right after one delta (what its ack must report), and what that delta added and dropped."""
+
+    held: int
+    bytes: int
+    digest: int
+    add: np.ndarray
+    drop: np.ndarray
+
+    def remove(self, reps: np.ndarray, rep_bytes: np.ndarray, terms: np.ndarray) -> None:
+        """Take refused reps out of this record (they were counted as held)."""
+        self.held -= int(reps.size)
+        self.bytes -= int(rep_bytes[reps].sum())
+        self.digest ^= int(np.bitwise_xor.reduce(terms[reps]))
 
 
 def _expand(key: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

@@ -34,3 +34,13 @@ def denhaag_store(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("scenes") / "denhaag-small.db"
     build_named("denhaag", path, seed=0, size=400)
     return path
+
+
+@pytest.fixture(scope="session")
+def auditorium_store(tmp_path_factory) -> Path:
+    """The auditorium (``walkstream build auditorium``, seed 0): a hall of ≥ 400 detailed chairs, built once (~3 s)."""
+    from server.scene.catalog import build_named
+
+    path = tmp_path_factory.mktemp("scenes") / "auditorium.db"
+    build_named("auditorium", path, seed=0)
+    return path

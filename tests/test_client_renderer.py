@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import moderngl
 import numpy as np
 import pytest
 import trimesh
@@ -73,17 +72,18 @@ def test_stats_count_exactly_and_skip_missing(renderer: Renderer) -> None:
     assert (empty.triangles, empty.vertices, empty.draws) == (0, 0, 0) and empty.time > 0
 
 
-def test_free_releases_gl_objects(renderer: Renderer) -> None:
-    renderer.upload(1, _sphere())
-    mesh = renderer.meshes[1]
-    renderer.upload(1, _sphere(subdivisions=1))  # replacing releases the old buffers
-    assert isinstance(mesh.vbo.mglo, moderngl.mgl.InvalidObject)
-    mesh = renderer.meshes[1]
+def test_free_returns_arena_space(renderer: Renderer) -> None:
+    big, small = _sphere(), _sphere(subdivisions=1)
+    renderer.upload(1, big)
+    assert (renderer.vertex_arena.used, renderer.index_arena.used) == (big.vertices, 3 * big.faces)
+    renderer.upload(1, small)  # replacing frees the old blocks
+    assert (renderer.vertex_arena.used, renderer.index_arena.used) == (small.vertices, 3 * small.faces)
+    assert renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0).triangles == small.faces
     renderer.free(1)
     renderer.free(1)  # unknown ids are ignored
-    assert 1 not in renderer.meshes
-    for obj in (mesh.vao, mesh.vbo, mesh.ibo):
-        assert isinstance(obj.mglo, moderngl.mgl.InvalidObject)
+    renderer.free(12345)
+    assert 1 not in renderer.meshes and not renderer.meshes
+    assert renderer.vertex_arena.used == renderer.index_arena.used == 0
     assert renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0).draws == 0
 
 
@@ -151,17 +151,20 @@ def test_morph_ends_reproduce_their_levels_and_midway_differs(renderer: Renderer
     assert renderer.unmorphed == 0
 
 
-def test_morph_program_at_weight_one_is_exact(renderer: Renderer) -> None:
-    """The morph shader itself at w = 1 (not the static path draw() takes for w ≥ 1) draws the fine level."""
+def test_morph_blend_at_weight_one_is_exact(renderer: Renderer) -> None:
+    """Every draw goes through the blend; at w = 1 a rep whose target differs from its positions is the fine level."""
     fine, coarse, vmap = _pyramid()
     renderer.upload(2, fine, object_id=3)
-    image_fine = _image(renderer, 2)
-    renderer.set_morph_target(2, morph_targets(fine.positions, coarse.positions, vmap))
-    renderer.draw(np.array([2]), EYE, FORWARD, UP, 0.1, 100.0, weights=np.array([0.5]))  # sets the morph uniforms
-    renderer._u_weight.value = 1.0
-    renderer.fbo.clear(*BACKGROUND, 1.0, depth=1.0)
-    renderer.meshes[2].morph.vao.render(moderngl.TRIANGLES)
-    np.testing.assert_array_equal(renderer.read_image(), image_fine)
+    for algorithm in range(3):
+        a = np.array([algorithm])
+        renderer.draw(np.array([2]), EYE, FORWARD, UP, 0.1, 100.0, algorithms=a)
+        image_fine = renderer.read_image()
+        renderer.set_morph_target(2, morph_targets(fine.positions, coarse.positions, vmap))
+        renderer.draw(np.array([2]), EYE, FORWARD, UP, 0.1, 100.0, algorithms=a)
+        np.testing.assert_array_equal(renderer.read_image(), image_fine)
+        renderer.draw(np.array([2]), EYE, FORWARD, UP, 0.1, 100.0, weights=np.array([1.0]), algorithms=a)
+        np.testing.assert_array_equal(renderer.read_image(), image_fine)
+        renderer.upload(2, fine, object_id=3)
 
 
 def test_morph_of_a_decimated_sphere_ends_on_its_coarser_level(renderer: Renderer) -> None:
@@ -226,21 +229,361 @@ def test_morph_target_shape_checked_and_freed_with_the_rep(renderer: Renderer) -
         renderer.set_morph_target(99, np.zeros((5, 3), np.float32))
     assert not renderer.has_morph_target(2)
     targets = morph_targets(fine.positions, coarse.positions, vmap)
-    renderer.set_morph_target(2, targets)
-    first = renderer.meshes[2].morph
-    renderer.set_morph_target(2, targets)  # replacing releases the old target
-    for obj in (first.vao, first.tbo):
-        assert isinstance(obj.mglo, moderngl.mgl.InvalidObject)
-    morph = renderer.meshes[2].morph
+    renderer.upload(1, coarse, object_id=0)
+    image_coarse = _image(renderer, 1)
+    renderer.upload(2, fine, object_id=0)
+    renderer.set_morph_target(2, fine.positions)  # a target equal to the positions: w = 0 is the fine level
+    image_fine = _image(renderer, 2)
+    np.testing.assert_array_equal(_image(renderer, 2, 0.0), image_fine)
+    renderer.set_morph_target(2, targets)  # replacing the target
+    np.testing.assert_array_equal(_image(renderer, 2, 0.0), image_coarse)
     renderer.free(2)
     assert not renderer.has_morph_target(2)
-    for obj in (morph.vao, morph.tbo):
-        assert isinstance(obj.mglo, moderngl.mgl.InvalidObject)
     # Uploading over a rep drops its target too (the new geometry has other vertices).
     renderer.upload(2, fine)
     renderer.set_morph_target(2, targets)
-    morph = renderer.meshes[2].morph
     renderer.upload(2, fine)
-    assert not renderer.has_morph_target(2) and isinstance(morph.tbo.mglo, moderngl.mgl.InvalidObject)
+    assert not renderer.has_morph_target(2)
     stats = renderer.draw(np.array([2]), EYE, FORWARD, UP, 0.1, 100.0, weights=np.array([0.5]))
     assert stats.morphs == 0 and renderer.unmorphed == 1
+
+
+# ----------------------------------------------------------------------------- batching, algorithms, measurement
+
+from client.renderer import ALGORITHMS, FrameTerms, smooth_normals, target_normals  # noqa: E402
+
+_BG = np.round(np.array(BACKGROUND) * 255)
+
+
+def _drawn(image: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels that are not the clear colour."""
+    return np.abs(image.astype(int) - _BG).max(axis=2) > 0
+
+
+def _grid(renderer: Renderer, first: int = 10, n: int = 9) -> np.ndarray:
+    """n small spheres on a 3 × 3 grid that do not overlap on screen; returns their rep ids."""
+    reps = np.arange(first, first + n)
+    for i, rep in enumerate(reps.tolist()):
+        renderer.upload(rep, _sphere(_grid_centre(i), subdivisions=1 + i % 3), object_id=i)
+    return reps
+
+
+def _grid_centre(i: int) -> tuple[float, float, float]:
+    return ((i % 3 - 1) * 2.4, (i // 3 - 1) * 2.3, -3.0)
+
+
+def test_batched_equals_drawn_one_by_one(renderer: Renderer) -> None:
+    reps = _grid(renderer)
+    algorithms = np.arange(reps.size) % 3
+    levels = np.linspace(0, 4, reps.size)
+    for false_colour in (False, True):
+        renderer.false_colour = false_colour
+        stats = renderer.draw(reps, EYE, FORWARD, UP, 0.1, 100.0, algorithms=algorithms, levels=levels)
+        batched = renderer.read_image()
+        assert stats.draws == reps.size
+        composite = np.broadcast_to(_BG.astype(np.uint8), batched.shape).copy()
+        coverage = np.zeros(batched.shape[:2], int)
+        for i, rep in enumerate(reps.tolist()):
+            renderer.draw(np.array([rep]), EYE, FORWARD, UP, 0.1, 100.0, algorithms=algorithms[i : i + 1],
+                          levels=levels[i : i + 1])
+            image = renderer.read_image()
+            mask = _drawn(image)
+            assert mask.sum() > 50
+            composite[mask] = image[mask]
+            coverage += mask
+        assert coverage.max() == 1  # the spheres do not overlap on screen
+        np.testing.assert_array_equal(batched, composite)
+        # The order of the reps does not matter either (grouping by algorithm reorders them anyway).
+        order = np.random.default_rng(3).permutation(reps.size)
+        renderer.draw(reps[order], EYE, FORWARD, UP, 0.1, 100.0, algorithms=algorithms[order], levels=levels[order])
+        np.testing.assert_array_equal(renderer.read_image(), batched)
+
+
+def test_each_algorithm_draws_its_own_look(renderer: Renderer) -> None:
+    renderer.upload(1, _sphere(subdivisions=1), object_id=4)  # coarse: flat shows its facets, lit smooths them
+    images = []
+    for algorithm in range(len(ALGORITHMS)):
+        stats = renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0, algorithms=np.array([algorithm]))
+        assert stats.terms.draws == [int(algorithm == k) for k in range(3)]
+        images.append(renderer.read_image().astype(int))
+        assert _drawn(images[-1]).sum() > 500  # not blank
+    masks = [_drawn(im) for im in images]
+    assert (masks[0] == masks[1]).all() and (masks[0] == masks[2]).all()  # same shape, other shading
+    for a in range(3):
+        for b in range(a + 1, 3):
+            assert np.abs(images[a] - images[b]).max(axis=2)[masks[0]].mean() > 3, (a, b)
+    # The shading's second differences: lit (Gouraud) is smooth, flat jumps at the facets, the bricks add edges.
+    def roughness(image: np.ndarray) -> float:
+        m = masks[0]
+        inner = m[1:-1, 1:-1] & m[2:, 1:-1] & m[:-2, 1:-1] & m[1:-1, 2:] & m[1:-1, :-2]
+        lap = image[1:-1, 2:] + image[1:-1, :-2] + image[2:, 1:-1] + image[:-2, 1:-1] - 4 * image[1:-1, 1:-1]
+        return float(np.abs(lap).sum(axis=2)[inner].mean())
+
+    assert 2 * roughness(images[1]) < roughness(images[0]) and 2 * roughness(images[0]) < roughness(images[2])
+
+
+def test_mixed_algorithms_count_terms_exactly(renderer: Renderer) -> None:
+    a, b, c = _sphere((-2.5, 0, 0), 1), _sphere((0, 0, 0), 2), _sphere((2.5, 0, 0), 3)
+    fine, coarse, vmap = _pyramid()
+    renderer.upload(1, a)
+    renderer.upload(2, b)
+    renderer.upload(3, c)
+    renderer.upload(4, fine)
+    renderer.set_morph_target(4, morph_targets(fine.positions, coarse.positions, vmap))
+    reps = np.array([1, 2, 3, 4, 99, 2])
+    stats = renderer.draw(reps, EYE, FORWARD, UP, 0.1, 100.0, weights=np.array([1.0, 1.0, 0.3, 0.4, 1.0, 1.0]),
+                          algorithms=np.array([2, 0, 2, 1, 0, 1]), levels=np.array([0.0, 1, 2, 3, 4, 5]))
+    t = stats.terms
+    assert isinstance(t, FrameTerms)
+    assert t.draws == [1, 2, 2]
+    assert t.triangles == [b.faces, fine.faces + b.faces, a.faces + c.faces]
+    assert t.vertices == [b.vertices, fine.vertices + b.vertices, a.vertices + c.vertices]
+    assert (stats.draws, stats.triangles, stats.vertices) == (5, sum(t.triangles), sum(t.vertices))
+    assert stats.morphs == 1 and renderer.missing == 1 and renderer.unmorphed == 1  # rep 3 has no target
+    assert stats.pixels == sum(t.pixels) and t.pixels[0] > 0 and t.pixels[2] > 0
+    assert 0 < stats.cpu_time <= stats.time and stats.splats == 0
+    with pytest.raises(ValueError):
+        renderer.draw(reps, EYE, FORWARD, UP, 0.1, 100.0, algorithms=np.array([0, 1, 2, 3, 0, 0]))
+    with pytest.raises(ValueError):
+        renderer.draw(reps, EYE, FORWARD, UP, 0.1, 100.0, algorithms=np.array([0, 1]))
+    with pytest.raises(ValueError):
+        renderer.draw(reps, EYE, FORWARD, UP, 0.1, 100.0, algorithms=np.full(6, 0.5))
+    with pytest.raises(ValueError):
+        renderer.draw(reps, EYE, FORWARD, UP, 0.1, 100.0, levels=np.zeros(5))
+    with pytest.raises(ValueError):
+        renderer.draw(reps, EYE, FORWARD, UP, 0.1, 100.0, levels=np.full(6, np.nan))
+    assert renderer.missing == 1  # refused frames count nothing
+
+
+def test_pixels_query_counts_covered_pixels(renderer: Renderer) -> None:
+    # A square facing the camera: no overdraw, so samples passed = covered pixels.
+    square = Geometry(np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32),
+                      np.array([[0, 1, 2], [0, 2, 3]], np.uint32))
+    renderer.upload(1, square, object_id=2)
+    for algorithm in range(3):
+        stats = renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0, algorithms=np.array([algorithm]))
+        covered = _drawn(renderer.read_image()).sum()
+        assert covered > 500 and abs(stats.pixels - covered) <= 0.01 * covered
+        assert stats.terms.pixels[algorithm] == stats.pixels
+    # A sphere, without back-face culling: its back faces may pass first, at most doubling the count.
+    renderer.upload(2, _sphere(), object_id=2)
+    stats = renderer.draw(np.array([2]), EYE, FORWARD, UP, 0.1, 100.0)
+    covered = _drawn(renderer.read_image()).sum()
+    assert 0.99 * covered <= stats.pixels <= 2 * covered
+    # Two objects side by side: the per-algorithm terms split the pixels.
+    renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0)
+    square_pixels = _drawn(renderer.read_image()).sum()
+    renderer.upload(3, _sphere((2.5, 0, 0)), object_id=3)
+    stats = renderer.draw(np.array([1, 3]), EYE, FORWARD, UP, 0.1, 100.0, algorithms=np.array([0, 2]))
+    assert stats.terms.pixels[1] == 0 and stats.terms.pixels[2] > 0
+    assert abs(stats.terms.pixels[0] - square_pixels) <= 0.01 * square_pixels
+    assert renderer.draw(np.zeros(0, int), EYE, FORWARD, UP, 0.1, 100.0).pixels == 0
+
+
+def test_false_colour_shows_levels_and_marks_morphs(renderer: Renderer) -> None:
+    fine, coarse, vmap = _pyramid()
+    renderer.upload(1, fine, object_id=3)
+    renderer.set_morph_target(1, morph_targets(fine.positions, coarse.positions, vmap))
+    normal = _image(renderer, 1)
+    renderer.false_colour = True
+    by_level = []
+    for level in (0.0, 2.5, 5.0):
+        renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0, levels=np.array([level]))
+        by_level.append(renderer.read_image().astype(int))
+    mask = _drawn(normal)
+    assert (_drawn(by_level[0]) == mask).all()  # the same shape
+    for a, b in [(0, 1), (1, 2), (0, 2)]:
+        assert np.abs(by_level[a] - by_level[b]).max(axis=2)[mask].mean() > 30
+    assert np.abs(by_level[0] - normal).max(axis=2)[mask].mean() > 30
+    coarse_end, fine_end = by_level[0][mask].mean(axis=0), by_level[2][mask].mean(axis=0)
+    assert coarse_end[2] > coarse_end[0] and fine_end[0] > fine_end[2]  # blue for coarse, red for fine
+
+    def magenta(image: np.ndarray) -> np.ndarray:
+        r, g, b = image[..., 0], image[..., 1], image[..., 2]
+        return (r > 40) & (b > 40) & (g < 0.1 * np.minimum(r, b))
+
+    assert not magenta(by_level[1]).any()
+    renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0, weights=np.array([0.5]), levels=np.array([2.5]))
+    morphing = renderer.read_image().astype(int)
+    stripes = magenta(morphing)
+    assert 0.3 < stripes[_drawn(morphing)].mean() < 0.7  # about half of it, in stripes
+    # Lighting applies to the stripes too: the faces of the pyramid get different magentas.
+    assert np.unique(morphing[stripes][:, 0]).size >= 2
+    renderer.false_colour = False
+    renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0, weights=np.array([0.5]), levels=np.array([2.5]))
+    assert not magenta(renderer.read_image().astype(int)).any()
+
+
+def test_lit_morph_ends_match_their_levels(renderer: Renderer) -> None:
+    """The lit algorithm morphs its normals too: w = 0 shades like the coarser level (normals rounded to bytes)."""
+    from server.scene.lod import build_chain
+
+    mesh = trimesh.creation.icosphere(3)
+    chain = build_chain(mesh.vertices, mesh.faces, max_levels=3)
+    k = len(chain) - 1
+    (cp, cf), (fp, ff) = chain[k - 1], chain[k]
+    coarse = Geometry(cp.astype(np.float32), cf.astype(np.uint32))
+    fine = Geometry(fp.astype(np.float32), ff.astype(np.uint32))
+    renderer.upload(1, coarse, object_id=9)
+    renderer.upload(2, fine, object_id=9)
+    targets = morph_targets(fine.positions, coarse.positions, chain.morph[k])
+    renderer.set_morph_target(2, targets)
+    lit = np.array([1])
+    renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0, algorithms=lit)
+    image_coarse = renderer.read_image().astype(int)
+    renderer.draw(np.array([2]), EYE, FORWARD, UP, 0.1, 100.0, weights=np.array([0.0]), algorithms=lit)
+    at_zero = np.abs(renderer.read_image().astype(int) - image_coarse).max(axis=2)
+    assert np.percentile(at_zero, 99) <= 3 and (at_zero > 6).sum() <= 10
+    # The target normals are the coarse level's vertex normals, gathered through the map.
+    expected = smooth_normals(coarse.positions, coarse.indices)[chain.morph[k]]
+    got = target_normals(targets, fine.indices)
+    assert np.einsum("ij,ij->i", expected, got).min() > 0.999
+
+
+def test_layers_draw_inside_the_fence(renderer: Renderer) -> None:
+    renderer.upload(1, _sphere(), object_id=1)
+
+    class Layer:
+        def __init__(self, splats: int, pause: float = 0.0) -> None:
+            self.splats, self.pause, self.calls = splats, pause, []
+
+        def render(self, view_projection, eye, viewport, fov_y):
+            import time
+
+            self.calls.append((np.array(view_projection), np.array(eye), viewport, fov_y,
+                               renderer.ctx.fbo is renderer.fbo))
+            renderer.fbo.clear(1.0, 0.0, 0.0, 1.0, viewport=(0, 0, 4, 4))  # draws into the frame's framebuffer
+            time.sleep(self.pause)
+            return self.splats
+
+    a, b = Layer(120, pause=0.05), Layer(3)
+    stats = renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0, layers=[a, b])
+    assert stats.splats == 123 and stats.time >= 0.05 and stats.cpu_time >= 0.05
+    assert len(a.calls) == len(b.calls) == 1
+    vp, eye, viewport, fov_y, bound = a.calls[0]
+    assert vp.shape == (4, 4) and vp.dtype == np.float32 and bound
+    assert viewport == (W, H) and fov_y == 60.0
+    np.testing.assert_array_equal(eye, EYE)
+    # Row-major, camera-relative: the sphere's centre (world origin) projects to the middle of the screen,
+    # a point above it to the upper half.
+    clip = vp @ np.array([*(np.zeros(3) - EYE), 1.0])
+    np.testing.assert_allclose(clip[:2] / clip[3], 0.0, atol=1e-6)
+    clip = vp @ np.array([*(np.array([0.0, 1.0, 0.0]) - EYE), 1.0])
+    assert clip[1] / clip[3] > 0.2
+    image = renderer.read_image()
+    np.testing.assert_array_equal(image[H - 4 :, :4], np.broadcast_to([255, 0, 0], (4, 4, 3)))  # after the clear
+    assert np.abs(image[H // 2, W // 2] - _BG).max() > 20  # and the meshes are still there
+    assert renderer.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0).splats == 0
+
+
+def test_gpu_time_rule() -> None:
+    rule = Renderer.gpu_time_plausible
+    assert rule(0.008, 0.010, 0.009)
+    assert not rule(0.0, 0.010, 0.0)  # zero
+    assert not rule(0.030, 0.010, 0.009)  # longer than the fence
+    assert not rule(3e-6, 0.010, 0.009)  # a few µs while the fence waited 9 ms on the GPU
+    assert rule(0.0005, 0.010, 0.0002)  # short GPU work after a long submission
+    with Renderer(32, 32) as r:
+        r.upload(1, _sphere())
+        stats = r.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0)
+        assert stats.gpu_time is None or 0 < stats.gpu_time <= stats.time * 1.1 + 1e-4
+
+
+def test_rep_ids_outside_the_dense_table(renderer: Renderer) -> None:
+    a, b = _sphere((-2, 0, 0), 1), _sphere((2, 0, 0), 2)
+    renderer.upload(-7, a)
+    renderer.upload((1 << 31) - 1, b)
+    renderer.upload(3, a)
+    stats = renderer.draw(np.array([-7, (1 << 31) - 1, 3, -8, 1 << 30]), EYE, FORWARD, UP, 0.1, 100.0)
+    assert (stats.draws, stats.triangles) == (3, 2 * a.faces + b.faces) and renderer.missing == 2
+    renderer.free(-7)
+    assert renderer.draw(np.array([-7, (1 << 31) - 1]), EYE, FORWARD, UP, 0.1, 100.0).draws == 1
+    assert renderer.draw([], EYE, FORWARD, UP, 0.1, 100.0).draws == 0
+
+
+def test_empty_geometry_is_a_draw_of_nothing(renderer: Renderer) -> None:
+    renderer.upload(1, Geometry(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32)))
+    renderer.upload(2, Geometry(np.zeros((3, 3), np.float32), np.zeros((0, 3), np.uint32)))
+    renderer.set_morph_target(1, np.zeros((0, 3), np.float32))
+    stats = renderer.draw(np.array([1, 2]), EYE, FORWARD, UP, 0.1, 100.0, weights=np.array([0.5, 1.0]))
+    assert (stats.draws, stats.triangles, stats.vertices, stats.pixels) == (2, 0, 3, 0)
+    with pytest.raises(ValueError):
+        renderer.upload(3, Geometry(np.zeros((3, 3), np.float32), np.array([[0, 1, 3]], np.uint32)))
+    assert 3 not in renderer.meshes
+
+
+def test_arena_growth_and_compaction_keep_images() -> None:
+    """Many uploads through tiny arenas (grown many times), frees (compacted), morphs: the frame stays the same."""
+    fine, coarse, vmap = _pyramid()
+    with Renderer(W, H) as reference:
+        reps = _grid(reference)
+        algorithms = np.arange(reps.size) % 3
+        reference.upload(50, fine, object_id=7)
+        reference.set_morph_target(50, morph_targets(fine.positions, coarse.positions, vmap))
+        drawn = np.append(reps, 50)
+        weights = np.append(np.ones(reps.size), 0.25)
+        reference.draw(drawn, EYE, FORWARD, UP, 0.1, 100.0, weights=weights, algorithms=np.append(algorithms, 1))
+        expected = reference.read_image()
+    with Renderer(W, H, vertex_capacity=8, index_capacity=16) as r:
+        r.vertex_arena.compact_min = r.index_arena.compact_min = 1
+        rng = np.random.default_rng(7)
+        junk = []
+        for i in range(200):  # interleave junk uploads and frees with the real ones
+            rep = 1000 + i
+            r.upload(rep, _sphere((50, 50, 50), subdivisions=int(rng.integers(0, 3))))
+            junk.append(rep)
+            if i % 20 == 5:
+                _grid(r)
+                r.upload(50, fine, object_id=7)
+                r.set_morph_target(50, morph_targets(fine.positions, coarse.positions, vmap))
+            if rng.random() < 0.6:
+                r.free(junk.pop(int(rng.integers(len(junk)))))
+        for rep in junk:
+            r.free(rep)
+        assert r.vertex_arena.grows >= 3 and r.index_arena.grows >= 3
+        assert r.vertex_arena.compactions >= 1 and r.index_arena.compactions >= 1
+        stats = r.draw(drawn, EYE, FORWARD, UP, 0.1, 100.0, weights=weights, algorithms=np.append(algorithms, 1))
+        assert stats.morphs == 1 and stats.draws == drawn.size
+        np.testing.assert_array_equal(r.read_image(), expected)
+        # Compaction of what is left moves the live blocks again; the frame does not change.
+        r.free(reps[0])
+        r.vertex_arena.compact()
+        r.index_arena.compact()
+        assert r.vertex_arena.holes == r.index_arena.holes == 0
+        r.upload(reps[0], _sphere(_grid_centre(0), subdivisions=1), object_id=0)
+        r.draw(drawn, EYE, FORWARD, UP, 0.1, 100.0, weights=weights, algorithms=np.append(algorithms, 1))
+        np.testing.assert_array_equal(r.read_image(), expected)
+
+
+def test_many_small_reps_in_one_frame() -> None:
+    """Thousands of representations: one multi-draw per algorithm, exact counts, the Python side in milliseconds."""
+    n = 3000
+    ico = trimesh.creation.icosphere(0)
+    rng = np.random.default_rng(2)
+    centres = rng.uniform(-60, 60, (n, 3))
+    with Renderer(W, H) as r:
+        for i in range(n):
+            r.upload(i, Geometry((ico.vertices * 0.5 + centres[i]).astype(np.float32), ico.faces.astype(np.uint32)))
+        eye = np.array([0.0, 0.0, 120.0])
+        reps = np.arange(n)
+        algorithms = rng.integers(0, 3, n)
+        stats = r.draw(reps, eye, FORWARD, UP, 0.1, 500.0, weights=np.ones(n), algorithms=algorithms,
+                       levels=np.zeros(n))
+        assert (stats.draws, stats.triangles, stats.vertices) == (n, 20 * n, 12 * n)
+        assert stats.terms.draws == np.bincount(algorithms, minlength=3).tolist()
+        assert stats.pixels > 0 and _drawn(r.read_image()).sum() > 0
+
+
+def test_external_context_is_kept() -> None:
+    import moderngl
+
+    ctx = moderngl.create_standalone_context(require=330, backend="egl")
+    try:
+        with Renderer(W, H, ctx=ctx) as r:
+            assert r.ctx is ctx
+            r.upload(1, _sphere())
+            assert r.draw(np.array([1]), EYE, FORWARD, UP, 0.1, 100.0).draws == 1
+        r.release()  # twice is harmless
+        ctx.buffer(reserve=16).release()  # the context is still alive
+    finally:
+        ctx.release()
