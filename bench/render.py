@@ -66,7 +66,7 @@ def linearity(counts=(50, 100, 200, 400, 800, 1600), repeats: int = 5, viewport=
 
     base = _sphere(3)
     offsets = _grid(max(counts), 1.0, 30.0)
-    rows = []
+    rows, spread = [], []
     with Renderer(*viewport) as r:
         for i, off in enumerate(offsets):
             r.upload(i, Geometry(base.positions + off.astype(np.float32), base.indices), object_id=i)
@@ -74,7 +74,9 @@ def linearity(counts=(50, 100, 200, 400, 800, 1600), repeats: int = 5, viewport=
             reps = np.arange(c)
             r.draw(reps, *_POSE, 0.1, 200.0)  # warm: first draw of a new size pays allocation
             times = [r.draw(reps, *_POSE, 0.1, 200.0) for _ in range(repeats)]
-            rows.append((times[0].triangles, float(np.median([s.time for s in times]))))
+            t = np.array([s.time for s in times])
+            rows.append((times[0].triangles, float(np.median(t))))
+            spread.extend((np.abs(t - np.median(t)) / np.median(t)).tolist())
             progress("linearity", j + 1, len(counts))
     tri = np.array([t for t, _ in rows], np.float64)
     sec = np.array([s for _, s in rows])
@@ -88,6 +90,8 @@ def linearity(counts=(50, 100, 200, 400, 800, 1600), repeats: int = 5, viewport=
         "intercept_ms": round(intercept * 1e3, 3),
         "r2": round(r2, 5),
         "max_departure": round(float(np.max(np.abs(sec - fit) / sec)), 4),
+        # The same frame drawn again: how far a repeat strays from the median (the floor under any model).
+        "repeat_p95_pct": round(float(np.percentile(spread, 95)) * 100, 2),
     }
 
 
@@ -180,7 +184,8 @@ def replay(frames: list[dict], warmup: float = 2.0) -> dict:
     from server.select.cost_online import OnlineCostModel
 
     online, zach = OnlineCostModel(), CostModel()
-    err_online, err_zach, chosen = [], [], []
+    err_online, err_zach, err_last, chosen = [], [], [], []
+    last = None
     for f in frames:
         terms = f["terms"]
         tri, ver, pix, drw = (np.asarray(terms[k], np.float64) for k in ("triangles", "vertices", "pixels", "draws"))
@@ -189,10 +194,13 @@ def replay(frames: list[dict], warmup: float = 2.0) -> dict:
             z = float(zach.predict(ver.sum()))
             err_online.append(abs(p - f["time"]) / f["time"])
             err_zach.append(abs(z - f["time"]) / f["time"])
+            if last is not None:  # persistence: this frame costs what the last one did (noise + change)
+                err_last.append(abs(last - f["time"]) / f["time"])
             chosen.append(online.chosen)
+        last = f["time"]
         online.observe(f["time"], tri, ver, pix, drw, f.get("splats", 0))
         zach.update(f["time"], int(ver.sum()))
-    eo, ez = np.asarray(err_online), np.asarray(err_zach)
+    eo, ez, el = np.asarray(err_online), np.asarray(err_zach), np.asarray(err_last)
 
     def pct(e, q):
         return round(float(np.percentile(e, q)) * 100, 2) if e.size else float("nan")
@@ -203,6 +211,7 @@ def replay(frames: list[dict], warmup: float = 2.0) -> dict:
         "p50_pct": pct(eo, 50), "p95_pct": pct(eo, 95),
         "zach_p50_pct": pct(ez, 50), "zach_p95_pct": pct(ez, 95),
         "p95_ratio_vs_zach": round(pct(eo, 95) / max(pct(ez, 95), 1e-9), 3) if eo.size else float("nan"),
+        "last_frame_p50_pct": pct(el, 50), "last_frame_p95_pct": pct(el, 95),
         "chosen": online.chosen, "chosen_frames": counts, "report": online.report(),
         "goal_pct": 10.0, "goal_met": bool(eo.size) and pct(eo, 95) <= 10.0,
     }
@@ -259,7 +268,8 @@ def run(store: Path | None, *, duration: float = 20.0, quick: bool = False, prog
         "Frame time against triangles (the same sphere drawn c times, median fenced time):",
         *[f"  {t:>9,d} triangles  {ms:8.2f} ms" for t, ms in zip(lin["triangles"], lin["ms"])],
         f"  line: {lin['ns_per_triangle']:.2f} ns/triangle + {lin['intercept_ms']:.2f} ms, R² = {lin['r2']:.4f}, "
-        f"largest departure {lin['max_departure'] * 100:.1f} %",
+        f"largest departure {lin['max_departure'] * 100:.1f} %; the same frame repeated strays "
+        f"{lin['repeat_p95_pct']:.1f} % from its median (p95)",
         "",
         "Client CPU per frame against drawn representations (median; reference: one draw call per rep):",
         "  (renderer's own work per frame; submission to the GL, which on llvmpipe includes its vertex",
@@ -274,6 +284,8 @@ def run(store: Path | None, *, duration: float = 20.0, quick: bool = False, prog
             "",
             f"Cost-model error over the {cost['scene']} tour ({cost['frames']} frames after 2 s, held out):",
             f"  online model ({cost['chosen']}): p50 {cost['p50_pct']:.1f} %, p95 {cost['p95_pct']:.1f} %",
+            f"  the previous frame's time:      p50 {cost['last_frame_p50_pct']:.1f} %, "
+            f"p95 {cost['last_frame_p95_pct']:.1f} %  (frame-to-frame noise and change)",
             f"  Zach's c_vertex average:        p50 {cost['zach_p50_pct']:.1f} %, p95 {cost['zach_p95_pct']:.1f} %"
             f"  (online p95 = {cost['p95_ratio_vs_zach']:.2f}× Zach's)",
             f"  chosen because: {rep.get('why', '')}",

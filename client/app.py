@@ -31,12 +31,13 @@ from websockets.sync.client import ClientConnection, connect
 from proto.camera import NEAR, far_plane
 from proto.codec import decode_server, encode
 from proto.errors import ProtocolError
-from proto.messages import PROTOCOL_VERSION, Ack, Camera, Delta, Error, FrameReport, Hello, Ping, Pong, Welcome
+from proto.messages import PROTOCOL_VERSION, Ack, AlgorithmTerms, Camera, Delta, Error, FrameReport, Hello, Ping, Pong, Welcome
 
 from .cache import ResidentCache
 from .navigation import Navigator, Tour
 from .renderer import Renderer
 from .schedule import Schedule
+from .splats import SplatLayer
 
 __all__ = ["ClientError", "ClientRun", "FrameRecord", "run_client"]
 
@@ -68,6 +69,12 @@ class FrameRecord:
     predicted_cost: float
     upload_time: float = 0.0
     morphs: int = 0
+    pixels: int = 0
+    splats: int = 0
+    gpu_time: float | None = None
+    cpu_time: float = 0.0
+    prepare_time: float = 0.0
+    terms: dict | None = None  # per rendering algorithm: triangles, vertices, pixels, draws (lists)
 
 
 @dataclass(frozen=True)
@@ -190,6 +197,9 @@ class _Loop:
         self.splats = None  # the splat layer (client.splats) for tree groups and models, when there is one
         self.schedule = Schedule()
         self.vegetation = Schedule(continuous=True)
+        # Rendering algorithm per object key, as (switch time, sorted keys, algorithms) from each delta:
+        # a delta's algorithms govern from its t0, like its selection.
+        self._algorithms: list[tuple[float, np.ndarray, np.ndarray]] = []
         self.last: Delta | None = None
         self.upload_time = 0.0
         self.closed = False
@@ -240,6 +250,18 @@ class _Loop:
     def _schedule(self, delta: Delta, arrived: float) -> None:
         """Hand the delta's schedule to the executors and build the morph targets it will draw."""
         reps, levels = self.cache.levels(delta.selection)
+        if delta.algorithm:
+            sel = np.asarray(delta.selection, np.int64)
+            alg = np.asarray(delta.algorithm, np.int64)[np.isin(sel, reps)]  # aligned with ``reps``
+            keys = reps - levels.astype(np.int64)
+            order = np.argsort(keys, kind="stable")
+            gen = (delta.t0, keys[order], alg[order])
+            if delta.reset or delta.start is None:
+                self._algorithms = [gen]
+            else:
+                self._algorithms = [g for g in self._algorithms if g[0] < delta.t0][-1:] + [gen]
+        elif delta.reset or delta.start is None:
+            self._algorithms = []
         m = delta.morphs
         to = np.asarray(m.level_to, np.float64)
         key = np.asarray(m.rep, np.int64) - to.astype(np.int64)
@@ -271,6 +293,28 @@ class _Loop:
         here = self.cache.holds(d.rep)
         self.run.skipped += int((~here).sum())
         return d, d.rep[here], d.weight[here]
+
+    def algorithms(self, keys: np.ndarray, t: float) -> np.ndarray | None:
+        """(s,) rendering algorithm of each object key at time t (the latest delta governing by then), or None."""
+        while len(self._algorithms) > 1 and self._algorithms[1][0] <= t:
+            self._algorithms.pop(0)
+        if not self._algorithms:
+            return None
+        _, k, a = self._algorithms[0]
+        if k.size == 0:
+            return np.zeros(keys.size, np.int64)
+        pos = np.minimum(np.searchsorted(k, keys), k.size - 1)
+        return np.where(k[pos] == keys, a[pos], 0)
+
+    def vegetation_at(self, t: float) -> None:
+        """Give the splat layer the tree groups and resolutions the vegetation schedule draws at t."""
+        if self.splats is None:
+            return
+        self.vegetation.advance(t)
+        v = self.vegetation.at(t)
+        x = np.clip(np.asarray(v.level, np.float64), 0.0, 1.0)
+        keep = x > 0
+        self.splats.set_resolutions(np.asarray(v.key, np.int64)[keep], x[keep])
 
     def pump(self, deadline: float | None) -> None:
         """Handle queued messages; with a deadline, wait for more until it (monotonic s)."""
@@ -305,6 +349,8 @@ def run_client(
     window: bool = False,
     navigate: str = "tour",
     false_colour: bool = False,
+    algorithms: Sequence[str] = ("flat", "lit", "textured"),
+    cache_bytes: int | None = None,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
@@ -316,6 +362,8 @@ def run_client(
     it is closed) and ``navigate`` ("tour", "fly", "walk") says who moves the
     camera there: the scene's tour, or the user (``client.navigation.Navigator``,
     whose limits go out in the ``Hello``). ``false_colour`` sets ``Renderer.false_colour``.
+    ``algorithms`` are the rendering algorithms offered to the selection (``proto.messages.ALGORITHMS``);
+    ``cache_bytes`` is the client cache's budget (payload bytes), kept by both ends.
     Raises ``ClientError`` if the session cannot be opened, ``client.window.WindowError``
     if the window cannot.
     """
@@ -343,6 +391,7 @@ def run_client(
     if view is not None:
         view.controller = navigator
     start = time.monotonic()  # the client clock: every t is seconds since here
+    loop: _Loop | None = None
     try:
         try:
             ws = connect(url, max_size=None, open_timeout=timeout)
@@ -352,7 +401,7 @@ def run_client(
             hello = Hello(
                 protocol=PROTOCOL_VERSION, scene=scene, viewport=[width, height], fov_y=fov_y,
                 target_frame_time=target_frame_time, solver=solver, client=CLIENT_NAME, predict=predict, morph=morph,
-                **limits,
+                algorithms=list(algorithms), cache_bytes=cache_bytes, **limits,
             )
             welcome, nbytes = _handshake(ws, hello, timeout)
             counter = [nbytes, 0]
@@ -361,7 +410,8 @@ def run_client(
             receiver = threading.Thread(target=_receive, args=(ws, inbox, counter, start), name="ws-receive",
                                         daemon=True)
             receiver.start()
-            loop = _Loop(run, renderer, inbox, ws)
+            loop = _Loop(run, renderer, inbox, ws, cache_bytes=cache_bytes)
+            loop.splats = SplatLayer(renderer.ctx)
             _frames(ws, loop, welcome, start, duration, 1.0 / max_fps if max_fps else 0.0, on_frame, trace,
                     window=view, navigator=navigator)
             if screenshot is not None:
@@ -382,6 +432,8 @@ def run_client(
         run.unmorphed = renderer.unmorphed
         return run
     finally:
+        if loop is not None and loop.splats is not None:
+            loop.splats.release()
         renderer.release()
         if view is not None:
             view.release()
@@ -422,10 +474,20 @@ def _frames(
             ws.send(encode(Camera(t=t, eye=eye.tolist(), forward=forward.tolist(), up=up.tolist())))
             loop.pump(None)
             rows, reps, weights = loop.drawn(t)
-            stats = renderer.draw(reps, eye, forward, up, NEAR, far_plane(eye, bounds), weights=weights)
+            here = cache.holds(rows.rep)
+            loop.vegetation_at(t)
+            layers = (loop.splats,) if loop.splats is not None else ()
+            stats = renderer.draw(reps, eye, forward, up, NEAR, far_plane(eye, bounds), weights=weights,
+                                  algorithms=loop.algorithms(rows.key[here], t), levels=rows.level[here],
+                                  layers=layers)
+            terms = stats.terms
             ws.send(encode(FrameReport(
                 frame=frame, t=t, time=min(max(stats.time, 1e-9), 60.0), triangles=stats.triangles,
-                vertices=stats.vertices, draws=stats.draws, selection=cache.seq,
+                vertices=stats.vertices, draws=stats.draws, selection=cache.seq, pixels=stats.pixels,
+                splats=stats.splats, gpu_time=None if stats.gpu_time is None else min(stats.gpu_time, 60.0),
+                cpu_time=min(stats.cpu_time, 60.0),
+                terms=None if terms is None else AlgorithmTerms(
+                    triangles=terms.triangles, vertices=terms.vertices, pixels=terms.pixels, draws=terms.draws),
             )))
         except ConnectionClosed as exc:
             loop.closed, loop.run.close_reason = True, f"connection lost while sending: {exc}"
@@ -435,7 +497,10 @@ def _frames(
             frame=frame, t=t, time=stats.time, triangles=stats.triangles, vertices=stats.vertices,
             draws=stats.draws, seq=cache.seq, cost_coeff=last.cost_coeff if last else 0.0,
             budget=last.budget if last else 0.0, predicted_cost=last.predicted_cost if last else 0.0,
-            upload_time=loop.upload_time, morphs=stats.morphs,
+            upload_time=loop.upload_time, morphs=stats.morphs, pixels=stats.pixels, splats=stats.splats,
+            gpu_time=stats.gpu_time, cpu_time=stats.cpu_time, prepare_time=stats.prepare_time,
+            terms=None if terms is None else {"triangles": list(terms.triangles), "vertices": list(terms.vertices),
+                                              "pixels": list(terms.pixels), "draws": list(terms.draws)},
         )
         if trace:
             loop.run.trace.append(FrameTrace(t, rows.key, rows.level, rows.rep, rows.weight))

@@ -115,7 +115,9 @@ class FrameStats:
     processing its draw module does in the calling thread). ``prepare_time``:
     the part of it that is the renderer's own work (looking up the reps,
     building the multi-draw commands and per-draw rows, uploading them), which
-    is what grows with the number of drawn representations. ``splats``: what
+    is what grows with the number of drawn representations. ``culled``: reps
+    asked for but outside the view frustum, not drawn (nor counted in the
+    other figures: the cost model is fitted to what was drawn). ``splats``: what
     the layers drew. ``terms``: the same work split by rendering algorithm.
     """
 
@@ -130,6 +132,7 @@ class FrameStats:
     splats: int = 0
     terms: FrameTerms | None = None
     prepare_time: float = 0.0
+    culled: int = 0
 
 
 class Layer(Protocol):
@@ -270,10 +273,12 @@ class _Slots:
     target: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     vblock: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # vertex arena offset, -1: none
     iblock: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # index arena offset, -1: none
+    centre: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float64))  # box over fine and target
+    half: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float64))
 
     def grow(self, capacity: int) -> None:
         old = self.vertices.size
-        for name in ("command", "vertices", "faces", "tint", "target", "vblock", "iblock"):
+        for name in ("command", "vertices", "faces", "tint", "target", "vblock", "iblock", "centre", "half"):
             a = getattr(self, name)
             b = np.zeros((capacity,) + a.shape[1:], a.dtype)
             b[:old] = a
@@ -323,6 +328,8 @@ class Renderer:
 
         self.false_colour = False
         """Shade each draw by its level (``levels``), morphing draws striped magenta."""
+        self.cull = True
+        """Leave out reps whose box is outside the view frustum (``FrameStats.culled``)."""
         self.false_colour_levels = 5.0
         """The level drawn in the false-colour ramp's finest colour (red); 0 is the coarsest (blue)."""
         common = (_SHADERS / "mesh_common.glsl").read_text()
@@ -418,6 +425,8 @@ class Renderer:
         s.tint[slot] = _packed_tint(rep if object_id is None else object_id)
         s.target[slot] = False
         s.vblock[slot], s.iblock[slot] = vblock, iblock
+        lo, hi = (positions.min(axis=0), positions.max(axis=0)) if nv else (np.zeros(3), np.zeros(3))
+        s.centre[slot], s.half[slot] = (lo + hi) / 2.0, (hi - lo) / 2.0
         self._bind(rep, slot)
 
     def set_morph_target(self, rep: int, targets: np.ndarray) -> None:
@@ -449,6 +458,10 @@ class Renderer:
                 indices = np.frombuffer(self.index_arena.read(int(self._slots.iblock[slot])), np.uint32)
                 records["target_normal"] = _pack_normals(target_normals(t, indices.reshape(-1, 3)))
             self.vertex_arena.write(block, records)
+            # A morphing vertex travels between its two positions: the box covers both ends.
+            c, h = self._slots.centre[slot], self._slots.half[slot]
+            lo, hi = np.minimum(c - h, t.min(axis=0)), np.maximum(c + h, t.max(axis=0))
+            self._slots.centre[slot], self._slots.half[slot] = (lo + hi) / 2.0, (hi - lo) / 2.0
         self._slots.target[slot] = True
 
     def has_morph_target(self, rep: int) -> bool:
@@ -611,6 +624,29 @@ class Renderer:
             alg = None if alg is None else alg[here]
             lev = None if lev is None else lev[here]
         tables = self._slots
+        eye = np.asarray(eye, np.float64)
+        up = np.asarray(up, np.float64)
+        forward = np.asarray(forward, np.float64)
+        rotation = view_matrix(np.zeros(3), forward, up)
+        vp64 = projection_matrix(self.fov_y, self.width / self.height, near, far) @ rotation
+        culled = 0
+        if self.cull and n:
+            # Frustum culling of the reps' boxes (camera-relative, Gribb–Hartmann planes of the view-projection):
+            # the selection includes a margin around the view for where the camera is going, and on
+            # llvmpipe every submitted vertex is processed on the CPU, seen or not.
+            planes = np.stack([vp64[3] + vp64[0], vp64[3] - vp64[0], vp64[3] + vp64[1], vp64[3] - vp64[1],
+                               vp64[3] + vp64[2], vp64[3] - vp64[2]])
+            rel = tables.centre[slots] - eye
+            dist = rel @ planes[:, :3].T + planes[:, 3]
+            reach = tables.half[slots] @ np.abs(planes[:, :3]).T
+            seen = (dist + reach >= 0.0).all(axis=1)
+            culled = n - int(np.count_nonzero(seen))
+            if culled:
+                slots = slots[seen]
+                w = None if w is None else w[seen]
+                alg = None if alg is None else alg[seen]
+                lev = None if lev is None else lev[seen]
+                n -= culled
         if alg is not None and n:  # group by algorithm, keeping the caller's order within each
             masks = [alg == k for k in range(len(ALGORITHMS))]
             order = np.concatenate([np.flatnonzero(m) for m in masks])  # three passes beat a sort
@@ -658,11 +694,7 @@ class Renderer:
         if self._vaos_stale:
             self._build_vaos()
 
-        eye = np.asarray(eye, np.float64)
-        up = np.asarray(up, np.float64)
-        forward = np.asarray(forward, np.float64)
-        rotation = view_matrix(np.zeros(3), forward, up)
-        vp = (projection_matrix(self.fov_y, self.width / self.height, near, far) @ rotation).astype(np.float32)
+        vp = vp64.astype(np.float32)
         vp_bytes = vp.T.tobytes()
         values = {
             "u_eye": tuple(eye),
@@ -714,6 +746,7 @@ class Renderer:
             gpu_time=gpu if self.gpu_time_plausible(gpu, elapsed, t2 - t1) else None,
             cpu_time=(c1 - c0) + (t1 - t0),
             prepare_time=c1 - c0,
+            culled=culled,
             splats=splats,
             terms=terms,
         )

@@ -39,6 +39,7 @@ from proto.codec import decode_client
 from proto.errors import ProtocolError
 from proto.manifest import mix
 from proto.messages import (
+    ALGORITHMS,
     PROTOCOL_VERSION,
     Ack,
     Camera,
@@ -61,6 +62,7 @@ from .select import solvers
 from .select.benefit import BenefitFactors, importance_table
 from .select.camera import View
 from .select.cost import CostModel
+from .select.cost_online import OnlineCostModel
 from .select.morph import MorphScheduler, mark, rep_parents
 from .select.predict import Limits, Predictor, conservative_camera
 from .select.selection import Interval, Memory, Scene, select
@@ -105,6 +107,9 @@ class SessionConfig:
     clock_wait : seconds regular selections wait for the first pong (a client that never answers pings
         gets them after that, timed by a guess)
     factors : which F&S benefit factors the selection applies, and their weights (None: all, defaults)
+    cost_model : "online" — F&S's coefficients fitted to the frame reports by robust recursive least
+        squares, the simplest adequate model chosen (``select.cost_online``); "zach" — the running
+        c_vertex average alone (Zach 2002, 4.2), for comparison
     """
 
     tau: float = 0.5
@@ -121,6 +126,11 @@ class SessionConfig:
     safety: float = 0.05
     clock_wait: float = 3.0
     factors: BenefitFactors | None = None
+    cost_model: str = "online"
+
+    def __post_init__(self) -> None:
+        if self.cost_model not in ("online", "zach"):
+            raise ValueError(f"cost_model must be 'online' or 'zach', got {self.cost_model!r}")
 
 
 class Session:
@@ -132,7 +142,13 @@ class Session:
         self.hello: Hello | None = None
         self.scene_name = ""
         self.camera: Camera | None = None
-        self.cost = CostModel(c_vertex=self.config.c_vertex, alpha=self.config.alpha)
+        if self.config.cost_model == "zach":
+            self.cost = CostModel(c_vertex=self.config.c_vertex, alpha=self.config.alpha)
+        else:
+            self.cost = OnlineCostModel(algorithms=len(ALGORITHMS), c_vertex=self.config.c_vertex)
+        self._algorithms: tuple = (0,)
+        self._pixel_scale = 1.0  # covered pixels per pixel of box screen area, measured
+        self._pixels_predicted: dict[int, float] = {}  # seq → box pixels its selection was priced with
         self.seq = 0
         self.next_selection: float | None = None
         # Counters for /sessions and the tests.
@@ -199,12 +215,33 @@ class Session:
                 self.frames += 1
                 self.last_frame_time = message.time
                 self._memory.frame_time = message.time
-                self.cost.update(message.time, message.vertices)
+                self._observe(message)
                 return []
             raise ProtocolError("unknown_type", f"'{message.type}' is not a client message")
         except ProtocolError as exc:
             self.errors += 1
             return [Error(code=exc.code, message=exc.message)]
+
+    def _observe(self, report: FrameReport) -> None:
+        """Fold one measured frame into the cost model, and the covered pixels into the fill estimate."""
+        terms = report.terms
+        if terms is None or not hasattr(self.cost, "observe"):
+            self.cost.update(report.time, report.vertices)
+        else:
+            r = len(ALGORITHMS)
+
+            def col(values: list[int]) -> np.ndarray:
+                out = np.zeros(r)
+                out[: len(values)] = values
+                return out
+
+            self.cost.observe(report.time, col(terms.triangles), col(terms.vertices), col(terms.pixels),
+                              col(terms.draws), report.splats)
+        predicted = self._pixels_predicted.get(report.selection, 0.0)
+        if report.pixels > 0 and predicted > 0:
+            # Boxes overstate what a mesh covers (and depth-tested overdraw understates nothing): learn the ratio.
+            ratio = float(np.clip(report.pixels / predicted, 0.02, 4.0))
+            self._pixel_scale += 0.1 * (ratio - self._pixel_scale)
 
     def _hello(self, hello: Hello, now: float) -> list[BaseModel]:
         if self.state is not SessionState.AWAIT_HELLO:
@@ -218,6 +255,7 @@ class Session:
             raise ProtocolError("unknown_solver", f"no solver {hello.solver!r}; known: {', '.join(sorted(solvers.SOLVERS))}")
         self.hello = hello
         self.scene_name = hello.scene
+        self._algorithms = tuple(ALGORITHMS.index(a) for a in hello.algorithms)
         index = self.scenes[hello.scene].index
         self._scene = Scene.of(index, importance_table(index.class_names, self.config.importance))
         self._memory = Memory()
@@ -427,13 +465,18 @@ class Session:
             start = self._window(switch)
             t0, t1 = switch, switch + tau
         view, margin = self._interval(c_now, t0, t1)
-        budget = hello.target_frame_time
+        # The fitted model's fixed per-frame cost (clear, finish) is spent whatever is drawn.
+        budget = max(hello.target_frame_time - getattr(self.cost, "overhead", 0.0), 0.25 * hello.target_frame_time)
         # The only clock the selection sees: an anytime solver stops at select_limit with its best so far.
         began = time.perf_counter()
         limit = Limit(time.perf_counter, began + self.config.select_limit)
         choice = select(self._scene, view, self.cost, budget, hello.solver, margin,
-                        memory=self._memory, t=t0, limit=limit, factors=self.config.factors)
+                        memory=self._memory, t=t0, limit=limit, factors=self.config.factors,
+                        algorithms=self._algorithms, pixel_scale=self._pixel_scale)
         self.last_stats = dict(choice.stats)
+        self._pixels_predicted[self.seq + 1] = choice.pixels
+        if len(self._pixels_predicted) > 64:
+            self._pixels_predicted.pop(min(self._pixels_predicted))
         self.seq += 1
         reps = choice.reps
         level = self._rep_level[reps]
@@ -482,6 +525,7 @@ class Session:
             drop=drop.tolist(),
             models=models,
             selection=reps.tolist(),
+            algorithm=[] if choice.algorithm is None else choice.algorithm.tolist(),
             budget=budget,
             predicted_cost=choice.cost,
             cost_coeff=self.cost.c_vertex,
@@ -588,6 +632,9 @@ class Session:
             "errors": self.errors,
             "cost_coeff": self.cost.c_vertex,
             "cost_updates": self.cost.updates,
+            "cost_model": getattr(self.cost, "chosen", "zach"),
+            "cost_overhead": float(getattr(self.cost, "overhead", 0.0)),
+            "pixel_scale": self._pixel_scale,
             "last_frame_time": self.last_frame_time,
             "solver_stopped": self.last_stats.get("stopped", ""),
             "bytes_sent": self.bytes_sent,

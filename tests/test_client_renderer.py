@@ -567,6 +567,7 @@ def test_many_small_reps_in_one_frame() -> None:
         eye = np.array([0.0, 0.0, 120.0])
         reps = np.arange(n)
         algorithms = rng.integers(0, 3, n)
+        r.cull = False  # every rep submitted: the counts are exact
         stats = r.draw(reps, eye, FORWARD, UP, 0.1, 500.0, weights=np.ones(n), algorithms=algorithms,
                        levels=np.zeros(n))
         assert (stats.draws, stats.triangles, stats.vertices) == (n, 20 * n, 12 * n)
@@ -587,3 +588,26 @@ def test_external_context_is_kept() -> None:
         ctx.buffer(reserve=16).release()  # the context is still alive
     finally:
         ctx.release()
+
+
+def test_frustum_culling_leaves_out_unseen_reps_without_changing_the_image() -> None:
+    """Reps outside the view are not submitted (nor counted), and the picture is the same either way."""
+    n = 400
+    ico = trimesh.creation.icosphere(1)
+    rng = np.random.default_rng(5)
+    centres = rng.uniform(-80, 80, (n, 3))
+    with Renderer(W, H) as r:
+        for i in range(n):
+            r.upload(i, Geometry((ico.vertices * 0.8 + centres[i]).astype(np.float32), ico.faces.astype(np.uint32)))
+        eye = np.array([0.0, 0.0, 0.0])
+        reps = np.arange(n)
+        r.cull = False
+        everything = r.draw(reps, eye, FORWARD, UP, 0.1, 500.0)
+        expected = r.read_image()
+        r.cull = True
+        culled = r.draw(reps, eye, FORWARD, UP, 0.1, 500.0)
+        np.testing.assert_array_equal(r.read_image(), expected)
+        assert everything.culled == 0 and everything.draws == n
+        # Looking along one axis from the middle of a cube of spheres, most of them are out of view.
+        assert culled.culled > n // 2 and culled.draws == n - culled.culled
+        assert culled.triangles == 80 * culled.draws and culled.pixels == everything.pixels

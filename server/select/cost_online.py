@@ -1,0 +1,532 @@
+"""The cost model fitted online from measured frames: robust recursive least squares and a ladder of models.
+
+``CostModel`` (cost.py) either follows one number (Zach's c_vertex) or is fitted
+offline (F&S). Here F&S's coefficients are fitted on the server from every frame
+report as it arrives, and only as much model is used as the machine needs:
+
+* ``RobustRLS`` — recursive least squares on relative error with exponential
+  forgetting (follows drift), Huber weights against a running robust scale
+  (single-frame spikes barely move it), a persistent-change detector (a machine
+  that really got slower is followed within a few frames), non-negative
+  coefficients, and a covariance bounded in directions the frames never excite
+  (algorithms never drawn do not wind up).
+* ``OnlineCostModel`` — three models fitted in parallel on every frame,
+  "vertex" (c_v·ΣV) ⊂ "draw" (c0 + Σ C2_r·V_r + C0·D + c_splat·S) ⊂ "stages"
+  (c0 + max(Σ C1_r·F_r + C2_r·V_r, Σ C3_r·P_r) + C0·D + c_splat·S). Each predicts
+  each frame before it learns from it (prequential, so the error is truly held
+  out); the simplest model whose recent held-out error is within ``within`` of
+  the best one's is used.
+
+Nothing here reads a clock or does I/O: the session passes the reported numbers in.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections import deque
+from itertools import islice
+
+import numpy as np
+
+from .cost import ALGORITHM_SCALE
+
+__all__ = ["RobustRLS", "OnlineCostModel", "MODELS"]
+
+#: The ladder, simplest first.
+MODELS = ("vertex", "draw", "stages")
+#: Prior spread of the secondary terms (c0, C1, C0, c_splat) as a share of the frame they alone could explain.
+SECONDARY = 0.25
+#: Frames a side of the stages model is "young": over-predicting the whole frame, it is scaled down to it.
+YOUNG = 10
+
+
+class RobustRLS:
+    """Huber-weighted recursive least squares of relative error, with forgetting, θ ≥ 0 and bounded covariance.
+
+    Model y ≈ x·θ. Each row is divided by y, so the residual e = 1 − x·θ / y is the relative error:
+    fast and slow frames count alike (a budget is a relative matter), and a slow spike's residual
+    is below 1 however slow it is.
+
+    mean, scale : (k,) prior coefficients and their prior standard deviation (> 0). Internally
+        φ = θ / scale, so rows are O(1) whatever the units (1e-7 s per vertex, 1e-3 s per frame).
+    forgetting : λ in (0, 1]; a frame weighs λ^age — memory ≈ 1 / (1 − λ) frames.
+    noise : the relative residual the prior is weighed against: P = Cov / noise² starts at
+        I / noise² (the prior's own uncertainty) and no coordinate's variance may exceed it, so a
+        direction no frame excites (an algorithm never drawn) stays at its prior instead of growing
+        as λ^−n; the cap scales rows and columns (D P D), which keeps P positive semi-definite.
+    huber : Huber's c in robust standard deviations (1.345: 95 % efficient on Gaussian noise).
+    window, floor : the robust scale σ is 1.4826 · median |e| of the last ``window`` residuals, ≥ floor.
+    slack, threshold, clip : change detection, Page's two-sided CUSUM of e / σ clipped to ±clip. A
+        spike adds at most clip − slack (2), so ``threshold`` 8 needs five in a row; a machine that
+        got 2× slower trips it in five frames, a ramp once its bias has grown. Then θ is rescaled by the
+        measured/predicted ratio the last ``keep`` surprising frames all agree on (the one nearest 1),
+        the frame gets full weight and P is re-opened by ``reopen`` of the prior's, so the change is
+        followed at once instead of at the pace of forgetting and down-weighted residuals.
+    """
+
+    def __init__(self, mean, scale, forgetting: float = 0.97, noise: float = 0.05, huber: float = 1.345,
+                 window: int = 15, floor: float = 0.005, slack: float = 0.5, threshold: float = 8.0,
+                 clip: float = 2.5, keep: int = 4, reopen: float = 0.05) -> None:
+        scale = np.array(scale, np.float64).reshape(-1)
+        mean = np.array(mean, np.float64).reshape(-1)
+        if not (0 < forgetting <= 1) or not (noise > 0):
+            raise ValueError(f"forgetting must be in (0, 1] and noise > 0, got {forgetting}, {noise}")
+        if mean.shape != scale.shape or not (np.isfinite(mean).all() and np.isfinite(scale).all()
+                                             and (scale > 0).all()):
+            raise ValueError("mean and scale must be finite, of one length, scale > 0")
+        self.k = mean.size
+        self.forgetting, self.huber, self.floor, self.reopen = forgetting, huber, floor, reopen
+        self.slack, self.threshold, self.clip = slack, threshold, clip
+        self.cap = 1.0 / noise**2
+        self.scale = scale
+        self.phi = np.maximum(mean, 0.0) / scale
+        self.P = np.eye(self.k) * self.cap
+        self.residuals: deque[float] = deque(maxlen=window)
+        self.updates = 0
+        self.changes = 0
+        self._hi = self._lo = 0.0
+        self._up: deque[float] = deque(maxlen=keep)  # measured/predicted over the current excursions
+        self._down: deque[float] = deque(maxlen=keep)
+
+    @property
+    def theta(self) -> np.ndarray:
+        """(k,) current coefficients, all ≥ 0."""
+        return self.phi * self.scale
+
+    def predict(self, x: np.ndarray) -> float:
+        return float(np.dot(np.asarray(x, np.float64), self.theta))
+
+    def robust_scale(self) -> float:
+        """Robust standard deviation of the recent relative residuals (inf until there are five)."""
+        if len(self.residuals) < 5:
+            return math.inf
+        return max(self.floor, 1.4826 * statistics.median(abs(e) for e in self.residuals))
+
+    def reset(self, index, mean, scale) -> None:
+        """Start coordinates afresh at ``mean`` ± ``scale``, decoupled from the rest (used when a
+        regressor is first excited, so its prior is on the scale of the frame that excites it)."""
+        index = np.atleast_1d(np.asarray(index, np.int64))
+        self.scale[index] = np.maximum(np.broadcast_to(np.asarray(scale, np.float64), index.shape), 1e-300)
+        mean = np.broadcast_to(np.asarray(mean, np.float64), index.shape)
+        self.phi[index] = np.maximum(mean, 0.0) / self.scale[index]
+        self.P[index, :] = 0.0
+        self.P[:, index] = 0.0
+        self.P[index, index] = self.cap
+
+    def update(self, x: np.ndarray, y: float) -> float:
+        """Fold in one row (x, y > 0); returns its relative residual before the update. O(k²).
+
+        A row that would make the state non-finite (absurd magnitudes) is dropped: returns nan."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            b = np.asarray(x, np.float64) * self.scale / y
+            e0 = e = 1.0 - float(b @ self.phi)
+        if not (math.isfinite(e) and np.isfinite(b).all()):
+            return math.nan
+        saved = self.phi.copy(), self.P.copy(), self._hi, self._lo
+        sigma = self.robust_scale()
+        c = self.huber * sigma
+        w = min(1.0, c / abs(e)) if e else 1.0
+        # Page's CUSUM on the clipped standardised residual: a spike adds at most clip − slack, so only a
+        # run of them (or a step, or a ramp's growing bias) reaches the threshold.
+        u = float(np.clip(e / sigma, -self.clip, self.clip)) if math.isfinite(sigma) else 0.0
+        self._hi, self._lo = max(0.0, self._hi + u - self.slack), max(0.0, self._lo - u - self.slack)
+        ratio = 1.0 / max(1.0 - e, 1e-3)  # measured / predicted
+        for total, ratios, side in ((self._hi, self._up, e > c), (self._lo, self._down, e < -c)):
+            if total <= 0:
+                ratios.clear()
+            elif side:  # only the surprising frames of the excursion say by how much the machine changed
+                ratios.append(ratio)
+        change = max(self._hi, self._lo) > self.threshold
+        if change:
+            # A machine that got slower (or faster) is so at everything first: rescale every coefficient
+            # by the measured/predicted ratio the last frames of the excursion all agree on (the one
+            # nearest 1, so a spike among them does not set it) and let the data refine them. Both sides of
+            # a max-of-stages model move, not only the one that happens to be the larger.
+            ratios = np.array(self._up if self._hi > self._lo else self._down)
+            if ratios.size:
+                self.phi *= float(np.clip(ratios[np.argmin(np.abs(np.log(ratios)))], 0.1, 10.0))
+            self._hi = self._lo = 0.0
+            self._up.clear()
+            self._down.clear()
+            e, w = 1.0 - float(b @ self.phi), 1.0
+            self.changes += 1
+        lam = self.forgetting
+        pb = self.P @ b
+        g = w * pb / (lam + w * float(b @ pb))
+        self.phi += g * e
+        self.P -= np.outer(g, pb)
+        self.P = (self.P + self.P.T) * (0.5 / lam)  # kept exactly symmetric
+        if change:
+            self.P[np.diag_indices(self.k)] += self.reopen * self.cap
+        d = np.diag(self.P)
+        if (d > self.cap).any():
+            f = np.sqrt(self.cap / np.maximum(d, self.cap))
+            self.P *= np.outer(f, f)
+        if (self.phi < 0).any():
+            self._project()
+        if not (np.isfinite(self.phi).all() and np.isfinite(self.P).all()):
+            self.phi, self.P, self._hi, self._lo = saved
+            return math.nan
+        self.residuals.append(e0)
+        self.updates += 1
+        return e0
+
+    def _project(self) -> None:
+        """θ ≥ 0: the negative coordinates go to 0 and the others move by their conditional mean given
+        that (projection in the P⁻¹ metric), so a correlated term takes up what the clamped one explained
+        instead of the fit losing it (a plain clamp was much slower to converge on the stages model)."""
+        active = np.zeros(self.k, bool)
+        for _ in range(self.k):
+            neg = self.phi < 0
+            if not neg.any():
+                break
+            active |= neg
+            a = np.flatnonzero(active)
+            shift = np.linalg.lstsq(self.P[np.ix_(a, a)], self.phi[a], rcond=None)[0]
+            self.phi -= self.P[:, a] @ shift
+            self.phi[a] = 0.0
+        np.maximum(self.phi, 0.0, out=self.phi)
+
+
+def _alg_scale(r: int) -> np.ndarray:
+    return np.array([ALGORITHM_SCALE[min(j, len(ALGORITHM_SCALE) - 1)] for j in range(r)])
+
+
+class _Rung:
+    """One model of the ladder: its RLS, how a frame becomes its row, and its coefficients in the full layout.
+
+    Frames and coefficients share the layout z = [1, F (R), V (R), P (R), D, S] (F&S's terms per
+    algorithm, draws, splats), so one formula (``_frame``) predicts for every model.
+    """
+
+    def __init__(self, name: str, r: int, c_vertex: float, forgetting: float, window: int) -> None:
+        self.name, self.r = name, r
+        c2 = c_vertex * _alg_scale(r)
+        n = 3 * r + 3
+        if name == "vertex":  # θ = [c_v]; a splat is one point vertex
+            self.cols, mean = None, np.array([c_vertex])
+            self.main, self.blocks = [np.array([0])], []
+        elif name == "draw":  # θ = [c0, C2 (R), C0, c_splat]
+            self.cols = np.concatenate([[0], 1 + r + np.arange(r), [n - 2, n - 1]])
+            mean = np.concatenate([[0.0], c2, [0.0, 0.0]])
+            self.main = self.blocks = [1 + np.arange(r)]
+        else:  # θ = z layout: [c0, C1 (R), C2 (R), C3 (R), C0, c_splat]
+            self.cols = np.arange(n)
+            mean = np.concatenate([[0.0], np.zeros(r), c2, np.zeros(r), [0.0, 0.0]])
+            self.blocks = [1 + np.arange(r), 1 + r + np.arange(r), 1 + 2 * r + np.arange(r)]
+            self.main = self.blocks[1:]
+        self.alg = _alg_scale(r)
+        self.rls = RobustRLS(mean, np.maximum(mean, c_vertex), forgetting=forgetting)
+        self.seen = np.zeros(mean.size, bool)
+        self.errors: deque[float] = deque(maxlen=window)
+        self.fill: deque[bool] = deque(maxlen=window)
+        self.sides = [0, 0]  # frames given to the geometry side, to the fill side
+        self._num = self._den = 0.0
+        self._lam = forgetting
+        self._full: np.ndarray | None = None  # ``full()`` until the coefficients move
+
+    def theta(self) -> np.ndarray:
+        """Coefficients in force: an algorithm never drawn follows those drawn (scaled by ALGORITHM_SCALE),
+        so it is neither priced out of the selection by a stale prior nor free."""
+        th = self.rls.theta
+        for blk in self.blocks:
+            seen = self.seen[blk]
+            if seen.any() and not seen.all():
+                th[blk[~seen]] = np.mean(th[blk[seen]] / self.alg[seen]) * self.alg[~seen]
+        return th
+
+    def full(self) -> np.ndarray:
+        if self._full is None:
+            th, r = self.theta(), self.r
+            c = np.zeros(3 * r + 3)
+            if self.cols is None:
+                c[1 + r : 1 + 2 * r] = c[-1] = th[0]
+            else:
+                c[self.cols] = th
+            self._full = c
+        return self._full
+
+    def row(self, z: np.ndarray) -> np.ndarray:
+        r = self.r
+        return np.array([z[1 + r : 1 + 2 * r].sum() + z[-1]]) if self.cols is None else z[self.cols]
+
+    def observe(self, t: float, z: np.ndarray) -> None:
+        x = self.row(z)
+        fresh = (x > 0) & ~self.seen
+        if fresh.any():
+            self._first(t, x, fresh)
+            self._full = None
+        fill = False
+        if self.name == "stages":
+            # F&S's max, fitted piecewise (EM-style, as ``CostModel.fit``): the frame goes to the side
+            # predicted larger, the other side's terms are masked out of its row; c0, C0 and c_splat are
+            # shared by both sides, so one estimator over the joint vector fits both with them.
+            r = self.r
+            geo, fil = slice(1, 1 + 2 * r), slice(1 + 2 * r, 1 + 3 * r)
+            c = self.full()
+            g, f = float(c[geo] @ z[geo]), float(c[fil] @ z[fil])
+            fill = f > g
+            self.sides[fill] += 1
+            if self.sides[fill] <= YOUNG and max(g, f) > t:
+                # Both sides start above the truth (each alone explaining the first frame) and the
+                # larger is the one corrected, so each comes down onto the frames it bounds — the fill
+                # side gets data when frames are fill-bound. While young, a side predicting more than the
+                # whole frame is scaled down to it: a linear step that large would overshoot below 0 and
+                # the non-negative projection would hand the frame to c0.
+                self.rls.phi[fil if fill else geo] *= t / max(g, f)
+                self._full = None
+            x = x.copy()
+            x[geo if fill else fil] = 0.0
+        self.fill.append(fill)
+        self.rls.update(x, t)
+        self._full = None
+        c = self.full()
+        self._num = self._lam * self._num + _frame(c, z, self.r) - c[0]
+        self._den = self._lam * self._den + z[1 + self.r : 1 + 2 * self.r].sum() + z[-1]
+
+    def _first(self, t: float, x: np.ndarray, fresh: np.ndarray) -> None:
+        """Put newly excited coordinates on the scale of the frame: t / x_j is the coefficient that alone
+        would explain it. A main term (per vertex, per pixel) starts there — as a block, t / Σx — or, if its
+        block has data already, where the block puts it; its spread is that much. A secondary term (c0,
+        per face, per draw, per splat) stays at its prior ± a quarter of it, so the first, nearly collinear
+        frames shape the main terms instead of loading everything onto c0."""
+        th = self.theta()
+        mean = th.copy()
+        spread = np.full(th.size, SECONDARY)
+        for blk in self.main:
+            spread[blk] = 1.0
+            if fresh[blk].any() and not self.seen[blk].any():
+                mean[blk] = t / x[blk].sum()
+        idx = np.flatnonzero(fresh)
+        self.rls.reset(idx, mean[idx], spread[idx] * t / x[idx])
+        self.seen |= fresh
+
+    def c_vertex(self) -> float:
+        if self.cols is None or self._den <= 0:
+            return float(self.full()[1 + self.r])
+        return self._num / self._den
+
+
+def _frame(c: np.ndarray, z: np.ndarray, r: int) -> float:
+    """Frame seconds for one z-layout frame: c0 + max(C1·F + C2·V, C3·P) + C0·D + c_splat·S."""
+    geometry = c[1 : 1 + 2 * r] @ z[1 : 1 + 2 * r]
+    fill = c[1 + 2 * r : 1 + 3 * r] @ z[1 + 2 * r : 1 + 3 * r]
+    return float(c[0] + max(geometry, fill) + c[-2] * z[-2] + c[-1] * z[-1])
+
+
+class OnlineCostModel:
+    """F&S's cost model fitted online from frame reports, no more complex than the machine needs.
+
+    algorithms : R, rendering algorithms (0 flat, 1 lit, 2 textured)
+    c_vertex : first guess, seconds per vertex (what is predicted before any frame)
+    forgetting : λ of every estimator; 0.97 remembers ~33 frames (0.5–1.6 s at 20–60 fps)
+    within : a simpler model is used while its held-out error is within this share of the best one's
+    window : frames of held-out error each model keeps for ``report`` (60: 1–3 s)
+    min_frames : frames before anything but "vertex" may be chosen
+
+    Selection rule. Every model predicts every frame before it learns from it; its score is the MEAN
+    relative error |pred − t| / t of those predictions over the last window / 3 frames (20: the models
+    forget with a memory of ~33 frames, so older errors describe older fits, and a model that has
+    converged is chosen within ~1 s). The mean, because it counts every frame — a model wrong only on
+    the 20 % of frames that are fill-bound pays for them, which a median hides, and those are the frames
+    that break the budget — and it is steadier than a p95, which over 20–60 frames is decided by one to
+    three frames, often spikes no model predicts. The chosen model is the simplest one whose score is
+    ≤ (1 + within) · the best score. Hysteresis, so it does not flap: going down to a simpler model also
+    needs that over the whole window (a second of geometry-bound frames between fill-bound ones does
+    not make "draw" enough); going up needs the chosen model's recent errors to be above the
+    candidate's beyond the noise (paired over the same frames, t > 1.5: a model stuck below the machine's
+    needs costs budget overruns, one above it only redundant terms); and a switch needs the same
+    answer window / 12 (5) frames in a row. Before ``min_frames`` frames: "vertex".
+    """
+
+    def __init__(self, algorithms: int = 3, c_vertex: float = 2e-7, forgetting: float = 0.97, within: float = 0.10,
+                 window: int = 60, min_frames: int = 10) -> None:
+        if algorithms < 1 or not (math.isfinite(c_vertex) and c_vertex > 0) or not within >= 0 or window < 1:
+            raise ValueError("algorithms ≥ 1, c_vertex > 0, within ≥ 0 and window ≥ 1 are needed")
+        self.algorithms, self.within, self.window, self.min_frames = algorithms, within, window, min_frames
+        self.rungs = {name: _Rung(name, algorithms, c_vertex, forgetting, window) for name in MODELS}
+        self.chosen = "vertex"
+        self.frames = 0
+        self.recent = max(1, window // 3)
+        self.hold = max(1, window // 12)
+        self._pending, self._count = "vertex", 0
+        self._faces = self._verts = 0.0  # forgetful sums: faces per vertex, for ``predict`` (given no faces)
+        self._lam = forgetting
+
+    # ------------------------------------------------------------------ feeding it
+
+    def observe(self, time: float, triangles: np.ndarray, vertices: np.ndarray, pixels: np.ndarray,
+                draws: np.ndarray, splats: int = 0) -> bool:
+        """Fold in one frame: measured seconds and what was drawn per algorithm ((R,) arrays).
+
+        Returns whether it was used: non-finite, negative or absurd figures (counts in (0, 1e-6) or
+        above 1e15), times under 1 ns (≤ 0 included) and frames that drew nothing (no vertices, no
+        splats) are refused. Arrays of the wrong size raise ValueError.
+        """
+        r = self.algorithms
+        cols = []
+        for name, a in (("triangles", triangles), ("vertices", vertices), ("pixels", pixels), ("draws", draws)):
+            a = np.asarray(a, np.float64).reshape(-1)
+            if a.size != r:
+                raise ValueError(f"{name} must have {r} entries (one per algorithm), got {a.size}")
+            cols.append(a)
+        try:
+            time, splats = float(time), float(splats)
+        except (TypeError, ValueError):
+            return False
+        z = np.concatenate([[1.0], cols[0], cols[1], cols[2], [cols[3].sum(), splats]])
+        if not (math.isfinite(time) and time >= 1e-9 and np.isfinite(z).all() and (z >= 0).all()):
+            return False  # no frame takes less than a nanosecond
+        if ((z > 0) & (z < 1e-6)).any() or z.max() > 1e15:
+            return False  # counts, not numerical dust (which would put a coefficient's scale at infinity)
+        if cols[1].sum() + splats <= 0:
+            return False
+        for rung in self.rungs.values():
+            rung.errors.append(abs(_frame(rung.full(), z, r) - time) / time)  # held out: before it learns
+            rung.observe(time, z)
+        self._faces = self._lam * self._faces + cols[0].sum()
+        self._verts = self._lam * self._verts + cols[1].sum()
+        self.frames += 1
+        self._select()
+        return True
+
+    def update(self, time: float, vertices: int) -> bool:
+        """``CostModel.update``: only the time and the vertices are known (flat, no draws, no pixels)."""
+        v, zero = np.zeros(self.algorithms), np.zeros(self.algorithms)
+        try:
+            v[0] = float(vertices)
+        except (TypeError, ValueError):
+            return False
+        return self.observe(time, zero, v, zero, zero)
+
+    @property
+    def updates(self) -> int:
+        """``CostModel.updates``: frames used."""
+        return self.frames
+
+    def scores(self, frames: int | None = None) -> dict:
+        """Each model's mean held-out relative error over its last ``frames`` (default window / 3) frames."""
+        n = frames or self.recent
+        return {name: math.fsum(islice(r.errors, max(0, len(r.errors) - n), None)) / min(n, len(r.errors))
+                if r.errors else math.inf for name, r in self.rungs.items()}
+
+    def _select(self) -> None:
+        if self.frames < self.min_frames:
+            target = "vertex"
+        else:
+            recent, whole = self.scores(), self.scores(self.window)
+            limit, limit_whole = (1.0 + self.within) * min(recent.values()), (1.0 + self.within) * min(whole.values())
+            at = MODELS.index(self.chosen)
+
+            def passes(n: str) -> bool:
+                # Going down also needs the whole window: a simpler model is not adopted because the last
+                # frames happened to need no more (a second of geometry-bound frames between fill-bound ones).
+                return recent[n] <= limit and (MODELS.index(n) >= at or whole[n] <= limit_whole)
+
+            target = next((n for n in MODELS if passes(n)), min(recent, key=recent.get))
+            if MODELS.index(target) > at and not self._worse(self.chosen, target):
+                target = self.chosen  # going up needs the chosen model to be worse beyond the noise
+        if target == self.chosen:
+            self._count = 0
+            return
+        self._count = self._count + 1 if target == self._pending else 1
+        self._pending = target
+        if self._count >= self.hold:
+            self.chosen, self._count = target, 0
+
+    def _worse(self, a: str, b: str) -> bool:
+        """Whether model a's recent held-out errors are above b's beyond the noise: a paired t > 1.5 over the
+        same frames (two 20-frame means at 3 % noise differ by ~15 % by chance alone)."""
+        ea, eb = self.rungs[a].errors, self.rungs[b].errors
+        n = min(self.recent, len(ea))
+        if n < 2:
+            return True
+        d = np.subtract(list(islice(ea, len(ea) - n, None)), list(islice(eb, len(eb) - n, None)))
+        return bool(d.mean() > 1.5 * d.std(ddof=1) / math.sqrt(n))
+
+    # ------------------------------------------------------------------ using it
+
+    @property
+    def overhead(self) -> float:
+        """The chosen model's fixed seconds per frame (c0); 0 for "vertex"."""
+        return float(self.rungs[self.chosen].full()[0])
+
+    @property
+    def c_vertex(self) -> float:
+        """Effective seconds per vertex of the chosen model: its recent predicted frame times without the
+        overhead over the vertices (and splats) drawn — exactly c_v for "vertex". With it, c_vertex ·
+        vertices + ``overhead`` is the frame time for callers that know only vertices."""
+        return self.rungs[self.chosen].c_vertex()
+
+    def _terms(self) -> tuple:
+        c, r = self.rungs[self.chosen].full(), self.algorithms
+        return c[0], c[1 : 1 + r], c[1 + r : 1 + 2 * r], c[1 + 2 * r : 1 + 3 * r], c[-2], c[-1]
+
+    def predict_terms(self, faces, vertices, pixels, algorithm=0, draws=1.0) -> np.ndarray:
+        """Seconds per tuple, without the frame overhead, broadcasting like ``CostModel.predict_terms``:
+        max(C1[R]·faces + C2[R]·vertices, C3[R]·pixels) + C0·draws — F&S's per-object cost."""
+        alg = np.asarray(algorithm, np.int64)
+        if alg.size and (alg.min() < 0 or alg.max() >= self.algorithms):
+            raise ValueError(f"algorithm index out of range 0..{self.algorithms - 1}")
+        _, c1, c2, c3, c_draw, _ = self._terms()
+        geometry = c1[alg] * np.asarray(faces, np.float64) + c2[alg] * np.asarray(vertices, np.float64)
+        fill = c3[alg] * np.asarray(pixels, np.float64)
+        return np.maximum(geometry, fill) + c_draw * np.asarray(draws, np.float64)
+
+    def predict(self, vertices) -> np.ndarray:
+        """``CostModel.predict``: flat algorithm, one draw each, no pixels; faces at the ratio seen so far."""
+        v = np.asarray(vertices, np.float64)
+        ratio = self._faces / self._verts if self._verts > 0 else 0.0
+        return self.predict_terms(ratio * v, v, 0.0, 0, 1.0)
+
+    def splat_cost(self, splats) -> np.ndarray:
+        """Seconds for that many splats (c_splat · N; a group's c_tree is its draw)."""
+        return self._terms()[-1] * np.asarray(splats, np.float64)
+
+    def predict_frame(self, triangles, vertices, pixels, draws, splats=0) -> float:
+        """Whole-frame seconds under the chosen model, overhead included; (R,) arrays as ``observe``."""
+        r = self.algorithms
+        parts = [np.broadcast_to(np.asarray(a, np.float64).reshape(-1), (r,)) for a in (triangles, vertices, pixels)]
+        z = np.concatenate([[1.0], *parts, [np.asarray(draws, np.float64).sum(), float(splats)]])
+        return _frame(self.rungs[self.chosen].full(), z, r)
+
+    def report(self) -> dict:
+        """The chosen model, why (every model's held-out p50/p95/mean and score), and the coefficients."""
+        r = self.algorithms
+        scores = self.scores()
+        best = min(scores, key=scores.get)
+        models = {}
+        for name, rung in self.rungs.items():
+            e = np.array(rung.errors)
+            c = rung.full()
+            coef = ({"c_vertex": float(c[1 + r])} if name == "vertex" else
+                    {"c0": float(c[0]), "c_poly": c[1 : 1 + r].tolist(), "c_vert": c[1 + r : 1 + 2 * r].tolist(),
+                     "c_pixel": c[1 + 2 * r : 1 + 3 * r].tolist(), "c_draw": float(c[-2]), "c_splat": float(c[-1])})
+            if name == "draw":
+                del coef["c_poly"], coef["c_pixel"]
+            models[name] = {
+                "p50": float(np.median(e)) if e.size else math.nan,
+                "p95": float(np.quantile(e, 0.95)) if e.size else math.nan,
+                "mean": float(e.mean()) if e.size else math.nan,
+                "score": scores[name],
+                "frames": int(e.size),
+                "changes": rung.rls.changes,
+                "coefficients": coef,
+            }
+            if name == "stages":
+                models[name]["fill_bound"] = float(np.mean(rung.fill)) if rung.fill else 0.0
+        limit = (1.0 + self.within) * scores[best]
+        if self.frames < self.min_frames:
+            why = f"{self.frames} < {self.min_frames} frames: the vertex model until the others are measured"
+        else:
+            why = (f"{self.chosen}: held-out score {scores[self.chosen]:.2%}, best {best} {scores[best]:.2%}, "
+                   f"limit (1 + {self.within:g}) × best = {limit:.2%}"
+                   + "".join(f"; {n} {scores[n]:.2%} is over it" for n in MODELS[: MODELS.index(self.chosen)]
+                             if scores[n] > limit)
+                   + (f"; {self._pending} asked for {self._count}/{self.hold} frames" if self._count else ""))
+        return {"chosen": self.chosen, "why": why, "frames": self.frames, "within": self.within,
+                "rule": f"simplest model whose mean held-out relative error over the last {self.recent} frames is "
+                        f"≤ (1 + within) × the best's (going down: over the last {self.window} too; going up: the "
+                        f"chosen one worse by a paired t > 1.5), asked for {self.hold} frames in a row",
+                "models": models}

@@ -1,0 +1,54 @@
+"""``walkstream bench render``: linearity, client CPU against drawn reps, and the cost model's held-out error."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from bench.render import replay
+
+
+def _frames(n, c_vertex=2e-7, c_draw=1e-5, overhead=1e-3, noise=0.02, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        v = rng.uniform(1e4, 2e5, 3) * np.array([1.0, 0.5, 0.2])
+        d = rng.integers(50, 500, 3)
+        t = overhead + c_vertex * v.sum() + c_draw * d.sum()
+        out.append({"t": i / 30.0, "time": float(t * (1 + noise * rng.standard_normal())), "splats": 0,
+                    "terms": {"triangles": (2 * v).astype(int).tolist(), "vertices": v.astype(int).tolist(),
+                              "pixels": [1000, 0, 0], "draws": d.tolist()}})
+    return out
+
+
+def test_replay_scores_the_online_model_held_out_against_zach_and_the_last_frame():
+    result = replay(_frames(300))
+    assert result["frames"] == sum(1 for f in _frames(300) if f["t"] >= 2.0)
+    # A machine with a per-draw cost and a fixed overhead: the fitted model beats c_vertex alone.
+    assert result["p95_pct"] < result["zach_p95_pct"]
+    assert result["p95_pct"] < 10.0 and result["goal_met"]
+    assert result["chosen"] in ("draw", "stages")
+    assert result["last_frame_p95_pct"] > result["p95_pct"]  # the frames vary: persistence is no model
+    json.dumps(result)
+
+
+def test_bench_render_command_prints_its_figures_and_json(auditorium_store):
+    cmd = [sys.executable, "-m", "bench.cli", "bench", "render", "--quick", "--store", str(auditorium_store),
+           "--duration", "5", "--json"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    lin, cpu, cost = result["linearity"], result["client_cpu"], result["cost_model"]
+    assert lin["triangles"] == sorted(lin["triangles"]) and len(lin["ms"]) == len(lin["triangles"])
+    assert lin["ns_per_triangle"] > 0 and 0 <= lin["repeat_p95_pct"] < 1000
+    assert [r["reps"] for r in cpu["rows"]] == [100, 1000]
+    assert all(r["cpu_ms"] > 0 and r["submit_ms"] >= r["cpu_ms"] and r["per_draw_loop_ms"] > 0 for r in cpu["rows"])
+    assert cost["scene"] == "auditorium" and cost["frames"] > 10
+    assert cost["chosen"] in ("vertex", "draw", "stages")
+    assert set(cost["report"]["models"]) == {"vertex", "draw", "stages"}
+    assert sum(cost["algorithms_drawn"].values()) > 0.99  # every frame's draws, split by algorithm
+    for needle in ("Frame time against triangles", "Client CPU per frame", "Cost-model error"):
+        assert needle in done.stderr
