@@ -68,6 +68,7 @@ def linearity(counts=(50, 100, 200, 400, 800, 1600), repeats: int = 5, viewport=
     offsets = _grid(max(counts), 1.0, 30.0)
     rows, spread = [], []
     with Renderer(*viewport) as r:
+        r.cull = False  # time against triangles submitted, seen or not
         for i, off in enumerate(offsets):
             r.upload(i, Geometry(base.positions + off.astype(np.float32), base.indices), object_id=i)
         for j, c in enumerate(counts):

@@ -275,10 +275,11 @@ class _Slots:
     iblock: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # index arena offset, -1: none
     centre: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float64))  # box over fine and target
     half: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float64))
+    sphere: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.float64))  # bounding sphere: x, y, z, r
 
     def grow(self, capacity: int) -> None:
         old = self.vertices.size
-        for name in ("command", "vertices", "faces", "tint", "target", "vblock", "iblock", "centre", "half"):
+        for name in ("command", "vertices", "faces", "tint", "target", "vblock", "iblock", "centre", "half", "sphere"):
             a = getattr(self, name)
             b = np.zeros((capacity,) + a.shape[1:], a.dtype)
             b[:old] = a
@@ -427,6 +428,7 @@ class Renderer:
         s.vblock[slot], s.iblock[slot] = vblock, iblock
         lo, hi = (positions.min(axis=0), positions.max(axis=0)) if nv else (np.zeros(3), np.zeros(3))
         s.centre[slot], s.half[slot] = (lo + hi) / 2.0, (hi - lo) / 2.0
+        s.sphere[slot] = (*s.centre[slot], np.linalg.norm(s.half[slot]))
         self._bind(rep, slot)
 
     def set_morph_target(self, rep: int, targets: np.ndarray) -> None:
@@ -462,6 +464,7 @@ class Renderer:
             c, h = self._slots.centre[slot], self._slots.half[slot]
             lo, hi = np.minimum(c - h, t.min(axis=0)), np.maximum(c + h, t.max(axis=0))
             self._slots.centre[slot], self._slots.half[slot] = (lo + hi) / 2.0, (hi - lo) / 2.0
+            self._slots.sphere[slot] = (*self._slots.centre[slot], np.linalg.norm(self._slots.half[slot]))
         self._slots.target[slot] = True
 
     def has_morph_target(self, rep: int) -> bool:
@@ -634,12 +637,12 @@ class Renderer:
             # Frustum culling of the reps' boxes (camera-relative, Gribb–Hartmann planes of the view-projection):
             # the selection includes a margin around the view for where the camera is going, and on
             # llvmpipe every submitted vertex is processed on the CPU, seen or not.
+            # Bounding spheres: one (s, 4) @ (4, 6) product — signed distance of each centre plus its radius.
             planes = np.stack([vp64[3] + vp64[0], vp64[3] - vp64[0], vp64[3] + vp64[1], vp64[3] - vp64[1],
                                vp64[3] + vp64[2], vp64[3] - vp64[2]])
-            rel = tables.centre[slots] - eye
-            dist = rel @ planes[:, :3].T + planes[:, 3]
-            reach = tables.half[slots] @ np.abs(planes[:, :3]).T
-            seen = (dist + reach >= 0.0).all(axis=1)
+            planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+            m = np.vstack([planes[:, :3].T, np.ones(6)])
+            seen = (tables.sphere[slots] @ m + (planes[:, 3] - planes[:, :3] @ eye) >= 0.0).all(axis=1)
             culled = n - int(np.count_nonzero(seen))
             if culled:
                 slots = slots[seen]
