@@ -211,3 +211,45 @@ def test_bad_pongs_and_acks_get_error_frames_and_harm_nothing(scenes):
     refused = first.add[0].rep
     s.receive(encode(Ack(seq=first.seq, t=0.1, rejected=[refused])), now=0.1)
     assert not s._resident[refused] and s.stats["errors"] == len(bad) and s.state is SessionState.ACTIVE
+
+
+# ----------------------------------------------------------------------------- protocol 3's new fields
+
+def _raw_hello(scenes, **kw) -> bytes:
+    fields = dict(type="hello", protocol=PROTOCOL_VERSION, scene=next(iter(scenes)), viewport=[640, 360])
+    return msgpack.packb({**fields, **kw})
+
+
+@pytest.mark.parametrize("bad, field", [
+    ({"algorithms": ["flat", "phong"]}, "algorithms"),
+    ({"algorithms": ["lit", "lit"]}, "repeat"),
+    ({"algorithms": []}, "algorithms"),
+    ({"cache_bytes": 10}, "cache_bytes"),
+    ({"cache_bytes": "lots"}, "cache_bytes"),
+])
+def test_a_bad_hello_of_protocol_3_is_refused_by_name(scenes, bad, field):
+    s = Session(scenes, "s1")
+    (err,) = _wire(s.receive(_raw_hello(scenes, **bad), now=0.0))
+    assert isinstance(err, Error) and err.code == "invalid" and field in err.message
+    assert s.state is SessionState.AWAIT_HELLO  # nothing opened; a good hello still works
+    assert isinstance(_wire(s.receive(_hello(scenes, algorithms=["flat", "textured"]), now=0.0))[0], Welcome)
+
+
+@pytest.mark.parametrize("terms, gpu", [
+    ({"triangles": [1, 2], "vertices": [1], "pixels": [0, 0], "draws": [1, 1]}, None),  # ragged columns
+    ({"triangles": [1, 2, 3, 4], "vertices": [1] * 4, "pixels": [0] * 4, "draws": [1] * 4}, None),  # 4 algorithms
+    ({"triangles": [-1], "vertices": [1], "pixels": [0], "draws": [1]}, None),  # negative count
+    (None, -0.5),  # negative GPU time
+    (None, float("nan")),
+])
+def test_malformed_frame_report_terms_harm_nothing(scenes, terms, gpu):
+    s = _open(scenes, algorithms=["flat", "lit", "textured"])
+    frame = {"type": "frame_report", "frame": 1, "t": 0.1, "time": 0.02, "triangles": 10, "vertices": 10,
+             "draws": 1, "terms": terms, "gpu_time": gpu}
+    (err,) = _wire(s.receive(msgpack.packb({k: v for k, v in frame.items() if v is not None}), now=0.1))
+    assert isinstance(err, Error) and err.code == "invalid"
+    assert s.cost.frames == 0 and s.frames == 0  # the model learnt nothing from it
+    good = FrameReport(frame=2, t=0.2, time=0.02, triangles=10_000, vertices=6_000, draws=10, pixels=5_000,
+                       terms={"triangles": [10_000, 0, 0], "vertices": [6_000, 0, 0], "pixels": [5_000, 0, 0],
+                              "draws": [10, 0, 0]})
+    assert s.receive(encode(good), now=0.2) == [] and s.cost.frames == 1 and s.frames == 1
