@@ -330,7 +330,7 @@ class Renderer:
         self.false_colour = False
         """Shade each draw by its level (``levels``), morphing draws striped magenta."""
         self.cull = True
-        """Leave out reps whose box is outside the view frustum (``FrameStats.culled``)."""
+        """Leave out reps whose bounding sphere is outside the view frustum (``FrameStats.culled``)."""
         self.false_colour_levels = 5.0
         """The level drawn in the false-colour ramp's finest colour (red); 0 is the coarsest (blue)."""
         common = (_SHADERS / "mesh_common.glsl").read_text()
@@ -634,10 +634,10 @@ class Renderer:
         vp64 = projection_matrix(self.fov_y, self.width / self.height, near, far) @ rotation
         culled = 0
         if self.cull and n:
-            # Frustum culling of the reps' boxes (camera-relative, Gribb–Hartmann planes of the view-projection):
+            # Frustum culling by bounding sphere (Gribb–Hartmann planes of the view-projection, normalised):
             # the selection includes a margin around the view for where the camera is going, and on
-            # llvmpipe every submitted vertex is processed on the CPU, seen or not.
-            # Bounding spheres: one (s, 4) @ (4, 6) product — signed distance of each centre plus its radius.
+            # llvmpipe every submitted vertex is processed on the CPU, seen or not. One (s, 4) @ (4, 6)
+            # product gives each centre's signed distance to each plane plus its radius.
             planes = np.stack([vp64[3] + vp64[0], vp64[3] - vp64[0], vp64[3] + vp64[1], vp64[3] - vp64[1],
                                vp64[3] + vp64[2], vp64[3] - vp64[2]])
             planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
