@@ -10,9 +10,13 @@ id is one XOR — the server updates it incrementally, never rehashing a set.
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 
-__all__ = ["mix", "digest"]
+from .errors import ProtocolError
+
+__all__ = ["mix", "digest", "pack_held", "unpack_held"]
 
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
@@ -31,3 +35,31 @@ def digest(reps: np.ndarray) -> int:
     """The digest of a set of representation ids (duplicates are the caller's error: they cancel)."""
     m = mix(reps)
     return int(np.bitwise_xor.reduce(m)) if m.size else 0
+
+
+def pack_held(reps: np.ndarray) -> bytes:
+    """The held set as a zlib'd little-endian bitset over ids 0..max: a city's cache in a few kilobytes."""
+    reps = np.asarray(reps, np.int64)
+    if reps.size == 0:
+        return zlib.compress(b"", 9)
+    if reps.min() < 0:
+        raise ValueError("representation ids are ≥ 0")
+    bits = np.zeros(int(reps.max()) + 1, bool)
+    bits[reps] = True
+    return zlib.compress(np.packbits(bits, bitorder="little").tobytes(), 9)
+
+
+def unpack_held(blob: bytes, n_reps: int) -> np.ndarray:
+    """(k,) int64 sorted ids from ``pack_held``; refuses (``bad_held``) a bad stream, a bomb, or an id ≥ n_reps."""
+    limit = (int(n_reps) + 7) // 8
+    inflate = zlib.decompressobj()
+    try:
+        raw = inflate.decompress(bytes(blob), limit + 1)
+    except zlib.error as exc:
+        raise ProtocolError("bad_held", f"the held manifest does not inflate: {exc}") from None
+    if len(raw) > limit or inflate.unconsumed_tail or not inflate.eof:
+        raise ProtocolError("bad_held", f"the held manifest is truncated or longer than {n_reps} representations")
+    ids = np.nonzero(np.unpackbits(np.frombuffer(raw, np.uint8), bitorder="little"))[0].astype(np.int64)
+    if ids.size and ids[-1] >= n_reps:
+        raise ProtocolError("bad_held", f"the held manifest names representation {int(ids[-1])}; the scene has {n_reps}")
+    return ids

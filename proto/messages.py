@@ -33,6 +33,8 @@ __all__ = [
     "TourKey",
     "ModelAdd",
     "AlgorithmTerms",
+    "Resume",
+    "MAX_HELD_BYTES",
     "ALGORITHMS",
     "ClientMessage",
     "ServerMessage",
@@ -40,7 +42,7 @@ __all__ = [
     "SERVER_TYPES",
 ]
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 
 #: Rendering algorithms (Funkhouser & Séquin's R), cheapest first; an index into this is an ``algorithm``.
 ALGORITHMS = ("flat", "lit", "textured")
@@ -99,6 +101,17 @@ class TourKey(Pose):
 
 # --------------------------------------------------------------------------- client → server
 
+#: The compressed held bitset (``proto.manifest.pack_held``) a hello may carry.
+MAX_HELD_BYTES = 48 * 1024
+
+
+class Resume(_Message):
+    """Continue session ``session`` (on any replica): the ``token`` its welcome gave proves it is ours."""
+
+    session: Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_\-]+$")]
+    token: Annotated[str, Field(min_length=16, max_length=128, pattern=r"^[A-Za-z0-9_\-]+$")]
+
+
 
 class Hello(_Message):
     """Opens a session on a scene."""
@@ -123,6 +136,11 @@ class Hello(_Message):
     cache_bytes: Annotated[int, Field(ge=1 << 16, le=1 << 40)] | None = None
     #: Rendering algorithms the client offers (``ALGORITHMS``); the selection picks one per representation.
     algorithms: Annotated[list[AlgorithmName], Field(min_length=1, max_length=3)] = ["flat"]
+    #: Resume an earlier session: its cost model, camera history and pipeline carry on (protocol 4).
+    resume: Resume | None = None
+    #: What the client already holds: ``proto.manifest.pack_held`` of its representation ids (a zlib'd bitset).
+    #: The server's mirror starts from it, so nothing held is sent again — on a resume or a fresh session.
+    held: Annotated[bytes, Field(max_length=MAX_HELD_BYTES)] | None = None
 
     @model_validator(mode="after")
     def _distinct(self) -> "Hello":
@@ -221,6 +239,12 @@ class Welcome(_Message):
     tour: Annotated[list[TourKey], Field(max_length=100_000)] = []
     predict: bool = True
     morph: bool = True
+    #: Present with ``session`` in a later hello's ``resume`` to continue this session after a lost connection.
+    token: Annotated[str, Field(max_length=128)] = ""
+    #: True when the hello's ``resume`` was honoured (the state was found and the token matched).
+    resumed: bool = False
+    #: Representations of the hello's ``held`` the server took as held (its mirror's count).
+    held: Annotated[int, Field(ge=0, le=MAX_LIST)] = 0
 
 
 class Ping(_Message):
