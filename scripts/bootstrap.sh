@@ -14,8 +14,12 @@ ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1 || need_apt+=(libgl1-mesa-dri)
 command -v Xvfb >/dev/null 2>&1 || need_apt+=(xvfb)
 command -v xauth >/dev/null 2>&1 || need_apt+=(xauth)
 ldconfig -p | grep -q 'libXtst\.so\.6' || need_apt+=(libxtst6)  # real X input events in the window tests
+# The scale-out topology the fault tests start as native processes: Redis for session state, nginx in front.
+command -v redis-server >/dev/null 2>&1 || need_apt+=(redis-server)
+[ -x /usr/sbin/nginx ] || command -v nginx >/dev/null 2>&1 || need_apt+=(nginx-light)
+command -v ip >/dev/null 2>&1 || need_apt+=(iproute2)
 if [ ${#need_apt[@]} -gt 0 ]; then
-  echo "bootstrap: installing ${need_apt[*]} (Mesa EGL for headless rendering, Xvfb for the window)" >&2
+  echo "bootstrap: installing ${need_apt[*]} (Mesa EGL, Xvfb, Redis, nginx)" >&2
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_apt[@]}" >/dev/null
