@@ -8,9 +8,11 @@ naming the message type and the field.
 
 from __future__ import annotations
 
+import threading
 from typing import Mapping
 
 import msgpack
+import zstandard
 from pydantic import BaseModel, ValidationError
 
 from .errors import ProtocolError
@@ -24,6 +26,8 @@ __all__ = [
     "decode_client",
     "decode_server",
     "error_frame",
+    "ZSTD_MAGIC",
+    "COMPRESS_ABOVE",
 ]
 
 #: Client frames are poses and reports: a few hundred bytes. 64 KiB is generous.
@@ -32,18 +36,50 @@ MAX_CLIENT_FRAME = 64 * 1024
 MAX_SERVER_FRAME = 256 * 1024 * 1024
 
 
-def encode(message: BaseModel) -> bytes:
-    """A message as one msgpack map (binary websocket frame)."""
-    return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+#: A server frame larger than this goes out as one zstd frame when that saves a tenth: many small meshes in a
+#: delta share headers and structure their own codecs cannot see. A msgpack message is a map, whose first
+#: byte is never zstd's magic's, so the client tells the two apart by the first four bytes.
+COMPRESS_ABOVE = 4096
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+_local = threading.local()  # zstd contexts are not thread-safe; selections encode in worker threads
+
+
+def _zstd() -> tuple[zstandard.ZstdCompressor, zstandard.ZstdDecompressor]:
+    pair = getattr(_local, "zstd", None)
+    if pair is None:
+        pair = _local.zstd = (zstandard.ZstdCompressor(level=3, write_content_size=True), zstandard.ZstdDecompressor())
+    return pair
+
+
+def encode(message: BaseModel, compress: bool = True) -> bytes:
+    """A message as one msgpack map (binary websocket frame); a large server message zstd-compressed.
+
+    Client messages are never compressed: the server accepts only plain msgpack, so its
+    decoder has no decompression to bound."""
+    frame = msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+    if compress and len(frame) > COMPRESS_ABOVE and message.type in SERVER_TYPES:
+        packed = _zstd()[0].compress(frame)
+        if len(packed) < 0.9 * len(frame):
+            return packed
+    return frame
+
+
+#: Longest field name an error sentence repeats: a peer's unknown key may be 64 KiB long.
+_MAX_LOC = 64
 
 
 def _describe(kind: str, exc: ValidationError) -> str:
+    """At most three errors, each field name clipped, so the sentence always fits an ``Error`` frame."""
     parts = []
-    for err in exc.errors()[:3]:
-        where = ".".join(str(p) for p in err["loc"]) or kind
-        parts.append(f"{kind}.{where}: {err['msg']}" if err["loc"] else f"{kind}: {err['msg']}")
+    for err in exc.errors(include_url=False, include_input=False)[:3]:
+        where = ".".join(_clip(str(p)) for p in err["loc"]) or kind
+        parts.append(f"{kind}.{where}: {err['msg'][:256]}" if err["loc"] else f"{kind}: {err['msg'][:256]}")
     more = exc.error_count() - len(parts)
     return "; ".join(parts) + (f" (and {more} more)" if more > 0 else "")
+
+
+def _clip(name: str) -> str:
+    return name if len(name) <= _MAX_LOC else name[:_MAX_LOC] + "…"
 
 
 def decode(data: bytes, types: Mapping[str, type[BaseModel]], max_size: int) -> BaseModel:
@@ -86,7 +122,18 @@ def decode_client(data: bytes) -> ClientMessage:
 
 
 def decode_server(data: bytes) -> ServerMessage:
-    """What the client calls on every incoming frame."""
+    """What the client calls on every incoming frame (plain msgpack, or zstd of it)."""
+    if isinstance(data, (bytes, bytearray, memoryview)) and bytes(data[:4]) == ZSTD_MAGIC:
+        try:
+            size = zstandard.frame_content_size(data)
+        except zstandard.ZstdError as exc:
+            raise ProtocolError("bad_msgpack", f"compressed frame has no valid header: {exc}"[:300]) from None
+        if size < 0 or size > MAX_SERVER_FRAME:
+            raise ProtocolError("too_large", f"compressed frame declares {size} bytes; the limit is {MAX_SERVER_FRAME}")
+        try:
+            data = _zstd()[1].decompress(data, max_output_size=size)
+        except zstandard.ZstdError as exc:
+            raise ProtocolError("bad_msgpack", f"compressed frame does not inflate: {exc}"[:300]) from None
     return decode(data, SERVER_TYPES, MAX_SERVER_FRAME)  # type: ignore[return-value]
 
 

@@ -95,5 +95,10 @@ class Delivery:
             self.bandwidth = float(np.median(self._rates))
         return took
 
+    def in_flight(self, server_now: float, horizon: float = 5.0) -> int:
+        """Bytes of deltas sent in the last ``horizon`` seconds and not yet acked: what still fills the link
+        (older ones are taken as lost, so a client that stopped acking cannot stall the stream for ever)."""
+        return int(sum(n for at, n, _ in self._sent.values() if server_now - at < horizon))
+
     def estimate(self, nbytes: float, clock: ClockSync) -> float:
         return 0.5 * clock.rtt + float(nbytes) / self.bandwidth

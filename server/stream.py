@@ -1,0 +1,120 @@
+"""What a delta may carry over this session's link: benefit gained per byte, within the bytes that arrive in time.
+
+A selection names the representation each object should show; a representation
+the client lacks is only worth counting on if its bytes reach the client before
+the interval it is drawn in. The session gives each delta a byte budget — the
+link's measured bandwidth times τ (what the link carries between two deltas),
+less what is still in flight — and ``gate`` decides, for the objects whose
+choice needs bytes, which are sent: the largest benefit gained per byte first
+(a greedy knapsack over bytes, as F&S's is over seconds). An object left out is
+drawn with its best resident ancestor — the finest coarser level the client
+already holds — or not at all, which costs less than what was chosen, so the
+frame-time budget still holds.
+
+Pure numpy over the scene's representation arrays: no I/O, no clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .select.benefit import accuracy
+from .select.camera import screen_size
+
+__all__ = ["Gate", "realise_bytes", "resident_fallback", "gain", "gate"]
+
+
+def realise_bytes(reps: np.ndarray, previous: np.ndarray, rep_first: np.ndarray, rep_bytes: np.ndarray,
+                  resident: np.ndarray) -> np.ndarray:
+    """(s,) bytes the client still lacks to show ``reps``: every non-resident level between the level drawn
+    before (``previous``, −1 if none) and the chosen one, inclusive — a geomorph passes through them."""
+    reps = np.asarray(reps, np.int64)
+    lacking = np.where(resident, 0, rep_bytes).astype(np.int64)
+    prefix = np.concatenate([[0], np.cumsum(lacking)])
+    first = np.asarray(rep_first, np.int64)
+    prev = np.where(np.asarray(previous, np.int64) >= 0, previous, reps)
+    lo = np.minimum(prev, reps)
+    hi = np.maximum(prev, reps)
+    lo = np.maximum(lo, first)  # never another object's chain
+    return prefix[hi + 1] - prefix[lo]
+
+
+def resident_fallback(reps: np.ndarray, rep_first: np.ndarray, resident: np.ndarray) -> np.ndarray:
+    """(s,) the finest resident level of each rep's object coarser than it (its best resident ancestor in the
+    chain), or −1 where the client holds none. One running maximum over the whole rep array."""
+    reps = np.asarray(reps, np.int64)
+    held = np.where(resident, np.arange(resident.size, dtype=np.int64), -1)
+    last = np.maximum.accumulate(held) if held.size else held
+    below = reps - 1
+    cand = np.where(below >= 0, last[np.maximum(below, 0)], -1)
+    return np.where(cand >= np.asarray(rep_first, np.int64), cand, -1)
+
+
+def gain(lo: np.ndarray, hi: np.ndarray, clip: np.ndarray, width: int, height: int,
+         faces_to: np.ndarray, faces_from: np.ndarray) -> np.ndarray:
+    """(s,) F&S benefit gained by showing ``faces_to`` instead of ``faces_from`` (0: nothing): pixels covered ×
+    the rise in accuracy (1 − 0.5/faces, capped at the pixels as F&S cap Samples)."""
+    size = screen_size(lo, hi, clip, width, height)
+    cap = np.maximum(size, 1.0)
+    acc_to = accuracy(np.minimum(faces_to, cap))
+    acc_from = np.where(np.asarray(faces_from) > 0, accuracy(np.minimum(faces_from, cap)), 0.0)
+    return size * np.maximum(acc_to - acc_from, 0.0)
+
+
+@dataclass(frozen=True)
+class Gate:
+    """The gate's decision for the objects whose choice needs bytes.
+
+    send : (s,) bool — the object's choice is sent (and drawn) now
+    order : (s,) int — indices into the inputs, best benefit per byte first
+    bytes : total bytes of the sent choices
+    """
+
+    send: np.ndarray
+    order: np.ndarray
+    bytes: int
+
+
+def gate(gains: np.ndarray, nbytes: np.ndarray, budget: float, at_least_one: bool = True,
+         requires: np.ndarray | None = None) -> Gate:
+    """Send the increments with the most benefit per byte while their running total fits ``budget``.
+
+    The greedy walk skips an increment too large for what is left and goes on
+    with smaller ones (a knapsack fill). ``requires`` (−1: none) names the
+    increment each one builds on — an object's full choice on top of its coarse
+    stand-in — and is only sent after it. ``at_least_one``: the best goes even
+    if it alone exceeds the budget — with nothing in flight, a large
+    representation must not wait for ever.
+    """
+    gains = np.asarray(gains, np.float64)
+    nbytes = np.asarray(nbytes, np.int64)
+    s = gains.size
+    if s == 0:
+        return Gate(np.zeros(0, bool), np.zeros(0, np.int64), 0)
+    req = np.full(s, -1, np.int64) if requires is None else np.asarray(requires, np.int64)
+    density = gains / np.maximum(nbytes, 1)
+    depth = (req >= 0).astype(np.int64)  # a stand-in before what builds on it, at equal density
+    order = np.lexsort((nbytes, depth, -density))
+    sizes = nbytes[order]
+    send = np.zeros(s, bool)
+    prefix = order[np.cumsum(sizes) <= budget]
+    send[prefix] = True
+    left = budget - float(nbytes[send].sum())
+    for _ in range(6):  # vectorised fill rounds: what still fits, in density order, once its base is sent
+        base_ok = (req < 0) | send[np.maximum(req, 0)]
+        open_ = ~send[order] & (sizes <= left) & base_ok[order]
+        if not open_.any():
+            break
+        idx = order[open_]
+        take = idx[np.cumsum(nbytes[idx]) <= left]
+        if take.size == 0:
+            take = idx[:1]
+        send[take] = True
+        left -= float(nbytes[take].sum())
+    # An increment whose base did not go cannot go either.
+    send &= (req < 0) | send[np.maximum(req, 0)]
+    if at_least_one and not send.any():
+        send[order[(req[order] < 0)][0] if (req < 0).any() else order[0]] = True
+    return Gate(send, order, int(nbytes[send].sum()))
