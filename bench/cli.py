@@ -278,6 +278,41 @@ def bench_render(
         print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
 
 
+@bench_app.command("encoding")
+def bench_encoding(
+    stores: Optional[list[Path]] = typer.Option(None, "--store", help="scene stores to measure "
+                                                 "(default: the cached Den Haag store and the auditorium)"),
+    keys: int = typer.Option(30, help="tour keys a session is driven over for the on-the-wire figure"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
+) -> None:
+    """Payload and on-the-wire bytes against raw float32 (goal ≤ 40 %), with zstd of the raw arrays as the
+    reference measured in the same run."""
+    from bench.encoding import run as run_encoding
+
+    if not stores:
+        from bench.correspondence import cached_store
+        from server.scene.catalog import build_named
+        from server.scene.store import SCHEMA_VERSION
+
+        auditorium = DEFAULT_CACHE / f"auditorium-s0-v{SCHEMA_VERSION}.db"
+        if not auditorium.exists():
+            auditorium.parent.mkdir(parents=True, exist_ok=True)
+            bar, tick = _progress_bar("building auditorium", as_json)
+            with bar:
+                build_named("auditorium", auditorium, seed=0, progress=tick)
+        stores = [cached_store(quiet=as_json), auditorium]
+    for p in stores:
+        if not p.exists():
+            raise typer.BadParameter(f"no such store: {p}", param_hint="--store")
+    bar, tick = _progress_bar("bench encoding", quiet=as_json)
+    with bar:
+        result = run_encoding(list(stores), progress=tick, keys=keys)
+    for line in result["lines"]:
+        typer.echo(line, err=as_json)
+    if as_json:
+        print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
+
+
 @app.command()
 def serve(
     stores: list[Path] = typer.Argument(..., help="scene stores to serve, each under its recorded name"),
@@ -286,9 +321,26 @@ def serve(
     tau: float = typer.Option(0.5, help="seconds between selections (τ)"),
     c_vertex: float = typer.Option(2.0e-7, help="first guess of the cost per vertex (s) before frames are measured"),
     log_level: str = typer.Option("warning", help="uvicorn log level"),
+    redis: Optional[str] = typer.Option(None, "--redis", envvar="WALKSTREAM_REDIS",
+                                        help="keep session state in this Redis (redis://host:port/0), shared by "
+                                             "replicas so a client resumes on any; default: in memory"),
+    admin_token: Optional[str] = typer.Option(None, "--admin-token", envvar="WALKSTREAM_ADMIN_TOKEN",
+                                              help="bearer token for GET /sessions and DELETE /sessions/ID "
+                                                   "(without one they answer 403)"),
+    max_sessions: int = typer.Option(256, help="websocket sessions at once; past it new ones are refused (busy)"),
+    rate: float = typer.Option(200.0, help="messages per second a session may send (token bucket rate)"),
+    burst: float = typer.Option(400.0, help="messages a session may send at once (token bucket size)"),
+    idle_timeout: float = typer.Option(60.0, help="seconds without a client message before the session is closed"),
+    workers: Optional[int] = typer.Option(None, help="selection worker threads (default: the number of CPUs)"),
+    state_ttl: float = typer.Option(300.0, help="seconds a disconnected session's state is kept for a resume"),
+    replica: Optional[str] = typer.Option(None, help="this replica's name in /health (default: hostname:port)"),
+    send_buffer: Optional[int] = typer.Option(None, help="kernel send buffer per connection in bytes (default: "
+                                              "autotuned); smaller bounds what a slow client pins"),
 ) -> None:
-    """Serve scene stores over websockets at /ws (plus /health, /scenes, /sessions)."""
+    """Serve scene stores over websockets at /ws (plus /health, /scenes, /metrics, and /sessions for admins)."""
+    from server.app import ServeError
     from server.app import serve as run_server
+    from server.limits import Limits
     from server.scene.store import StoreError
     from server.session import SessionConfig
 
@@ -299,9 +351,21 @@ def serve(
         raise typer.BadParameter("τ must lie in [0.05, 10] seconds", param_hint="--tau")
     if not 1e-12 <= c_vertex <= 1e-3:
         raise typer.BadParameter("must lie in [1e-12, 1e-3] seconds", param_hint="--c-vertex")
+    given = dict(max_sessions=max_sessions, rate=rate, burst=burst, idle_timeout=idle_timeout, state_ttl=state_ttl)
+    if workers is not None:
+        given["workers"] = workers
+    if send_buffer is not None:
+        given["send_buffer"] = send_buffer
     try:
-        run_server(stores, host, port, SessionConfig(tau=tau, c_vertex=c_vertex), log_level, announce=lambda s: print(s, flush=True))
-    except StoreError as exc:
+        limits = Limits(**given)
+    except ValueError as exc:
+        name = str(exc).split()[0]
+        raise typer.BadParameter(str(exc), param_hint="--" + name.replace("_", "-")) from None
+    try:
+        run_server(stores, host, port, SessionConfig(tau=tau, c_vertex=c_vertex), log_level,
+                   announce=lambda s: print(s, flush=True), limits=limits, state_url=redis or None,
+                   admin_token=admin_token or None, replica=replica)
+    except (StoreError, ServeError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
 
@@ -338,9 +402,11 @@ def client(
     navigate: Literal["tour", "fly", "walk"] = typer.Option(
         "tour", help="who moves the camera: the scene's tour, or you flying or walking (needs --window)"),
     false_colour: bool = typer.Option(False, "--false-colour", help="draw each object in a false colour"),
+    reconnect_timeout: float = typer.Option(10.0, min=0.0, help="seconds to keep redialling a lost connection "
+                                            "(resuming the session, nothing re-sent); 0: a loss ends the run"),
 ) -> None:
     """Run the client over the scene's tour (headless, or in a window you can navigate) and print its frame times."""
-    from client.app import run_client
+    from client.app import ClientError, run_client
     from client.window import WindowError
 
     _check_solver(solver)
@@ -352,14 +418,15 @@ def client(
         run = run_client(
             url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3,
             screenshot=screenshot, solver=solver, predict=predict, morph=morph, window=window, navigate=navigate,
-            false_colour=false_colour,
+            false_colour=false_colour, reconnect_timeout=reconnect_timeout,
         )
-    except WindowError as exc:
+    except (WindowError, ClientError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     from bench.demo import summarize
 
-    typer.echo(json.dumps(summarize(run, target_ms / 1e3).as_dict()))
+    typer.echo(json.dumps({**summarize(run, target_ms / 1e3).as_dict(), "reconnects": len(run.reconnects),
+                           "resent": run.resent, "close_reason": run.close_reason}))
 
 
 @app.command()
@@ -429,6 +496,57 @@ def demo(
     )
     if as_json:
         print(json.dumps({**summary.as_dict(), "chart": str(chart), "scene": scene, "solver": run.welcome.solver}))
+
+
+@app.command()
+def loadtest(
+    url: Optional[str] = typer.Option(None, help="a running server's websocket URL (ws://host:port/ws); "
+                                      "default: start one on --store"),
+    stores: Optional[list[Path]] = typer.Option(None, "--store", help="scene stores the started server serves "
+                                                "(default: the Den Haag store, built if missing)"),
+    scene: Optional[str] = typer.Option(None, help="scene to ask for (default: the server's first)"),
+    clients: int = typer.Option(..., help="simulated clients"),
+    duration: float = typer.Option(..., help="seconds to run, the ramp included"),
+    tau: float = typer.Option(0.5, help="τ of the started server (seconds between selections)"),
+    rate: float = typer.Option(10.0, help="camera poses and frame reports per second per client"),
+    target_ms: float = typer.Option(50.0, help="target frame time each client asks for (ms)"),
+    algorithms: str = typer.Option("flat", help="rendering algorithms the clients offer, comma-separated"),
+    ramp: Optional[float] = typer.Option(None, help="seconds over which the clients connect "
+                                         "(default: a quarter of the duration, at most 10)"),
+    seed: int = typer.Option(0, help="random seed (viewports, tour phases, frame-time noise)"),
+    reference: float = typer.Option(5.0, help="seconds of a one-client reference run first (0: skip)"),
+    admin_token: Optional[str] = typer.Option(None, envvar="WALKSTREAM_ADMIN_TOKEN", show_envvar=True,
+                                              help="the --url server's admin token, to read its client-cache "
+                                              "mirror checks from /sessions"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON object on stdout"),
+) -> None:
+    """Simulated clients (no GL) against a server: sessions, selections per second, p50/p99 selection latency,
+    bytes per second, server CPU per session and sessions per core, errors; a live table on stderr."""
+    from bench.loadtest import LoadtestError, format_summary, run_loadtest
+
+    algs = [a.strip() for a in algorithms.split(",") if a.strip()]
+    if stores and url:
+        raise typer.BadParameter("give either --url or --store", param_hint="--store")
+    for path in stores or []:
+        if not path.exists():
+            raise typer.BadParameter(f"no such store: {path}", param_hint="--store")
+    console = _stderr_console()
+    try:
+        summary = run_loadtest(
+            url=url, stores=stores or None, scene=scene, clients=clients, duration=duration, tau=tau, rate=rate,
+            target_ms=target_ms, algorithms=algs, ramp=ramp, seed=seed, reference=reference,
+            admin_headers={"Authorization": f"Bearer {admin_token}"} if admin_token else None,
+            live=True, log=lambda s: console.print(s, highlight=False),
+        )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    except LoadtestError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    for line in format_summary(summary):
+        typer.echo(line, err=as_json)
+    if as_json:
+        print(json.dumps(summary.as_dict()))
 
 
 def main() -> None:

@@ -9,6 +9,7 @@ summary after, and a chart of every frame's time against the target.
 from __future__ import annotations
 
 import os
+import secrets
 import subprocess
 import sys
 import threading
@@ -25,25 +26,59 @@ WARMUP_S = 2.0
 
 
 class ServerProcess:
-    """``walkstream serve`` in a child process on a free loopback port; a context manager."""
+    """``walkstream serve`` in a child process on a free loopback port; a context manager.
 
-    def __init__(self, stores: list[Path], *, host: str = "127.0.0.1", extra: list[str] | None = None):
-        cmd = [sys.executable, "-m", "bench.cli", "serve", *map(str, stores), "--host", host, "--port", "0"]
+    ``admin_token``: "auto" (default) makes a random one, passed through WALKSTREAM_ADMIN_TOKEN
+    (never on the command line, where ``ps`` shows it); None starts without admin endpoints.
+    ``srv.admin_headers`` carries it for httpx. ``redis``, ``replica``, ``port`` and ``env`` are
+    passed on; ``extra`` are further ``serve`` options.
+    """
+
+    def __init__(
+        self,
+        stores: list[Path],
+        *,
+        host: str = "127.0.0.1",
+        extra: list[str] | None = None,
+        admin_token: str | None = "auto",
+        redis: str | None = None,
+        replica: str | None = None,
+        port: int = 0,
+        env: dict | None = None,
+    ):
+        cmd = [sys.executable, "-m", "bench.cli", "serve", *map(str, stores), "--host", host, "--port", str(port)]
+        if redis:
+            cmd += ["--redis", redis]
+        if replica:
+            cmd += ["--replica", replica]
         cmd += extra or []
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.admin_token = secrets.token_urlsafe(24) if admin_token == "auto" else admin_token
+        self.admin_headers = {"Authorization": f"Bearer {self.admin_token}"} if self.admin_token else {}
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+        env.pop("WALKSTREAM_ADMIN_TOKEN", None)
+        if self.admin_token:
+            env["WALKSTREAM_ADMIN_TOKEN"] = self.admin_token
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
         line = self.proc.stdout.readline()  # blocks until the socket listens, or the child dies
         if "http://" not in line:
             self.proc.kill()
+            self.proc.wait()
             err = self.proc.stderr.read()
             raise RuntimeError(f"the server did not start: {line.strip()} {err.strip()[-2000:]}")
         self.http = line.split("on ", 1)[1].split()[0]
+        self.port = int(self.http.rsplit(":", 1)[1])
         self.url = self.http.replace("http://", "ws://") + "/ws"
         # Keep draining the pipes so the child never blocks on a full one.
         self._drain = [threading.Thread(target=self._pump, args=(s,), daemon=True) for s in (self.proc.stdout, self.proc.stderr)]
         self.log: list[str] = []
         for t in self._drain:
             t.start()
+
+    def kill(self) -> None:
+        """End the server at once (SIGKILL): no goodbye to its clients, as when a machine dies."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait()
 
     def _pump(self, stream) -> None:
         for line in stream:

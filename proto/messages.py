@@ -61,6 +61,9 @@ Id = Annotated[int, Field(ge=0, lt=1 << 31)]
 Count = Annotated[int, Field(ge=0, le=1 << 32)]
 #: A time on the client's clock (the session's time base); server estimates of it may precede 0.
 Time = Annotated[float, Field(ge=-1.0e9, le=1.0e9)]
+#: A client's own stamp: a tenth of that range, so what the server schedules from it (a stamp plus a lead of
+#: seconds) stays a valid ``Time`` — three years of session is plenty.
+ClientTime = Annotated[float, Field(ge=0.0, le=1.0e8)]
 Level = Annotated[float, Field(ge=0.0, le=255.0)]
 
 
@@ -153,7 +156,7 @@ class Camera(Pose):
     """Where the client's camera is at client time ``t``."""
 
     type: Literal["camera"] = "camera"
-    t: Annotated[float, Field(ge=0.0, le=1.0e9)]
+    t: ClientTime
 
 
 class Pong(_Message):
@@ -162,7 +165,7 @@ class Pong(_Message):
     type: Literal["pong"] = "pong"
     id: Count
     sent: float
-    t: Time
+    t: ClientTime
 
 
 class Ack(_Message):
@@ -176,7 +179,7 @@ class Ack(_Message):
 
     type: Literal["ack"] = "ack"
     seq: Count
-    t: Time
+    t: ClientTime
     rejected: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
     held: Annotated[int, Field(ge=-1, le=MAX_LIST)] = -1
     digest: Annotated[int, Field(ge=0, lt=1 << 64)] = 0
@@ -204,7 +207,7 @@ class FrameReport(_Message):
 
     type: Literal["frame_report"] = "frame_report"
     frame: Count
-    t: Annotated[float, Field(ge=0.0, le=1.0e9)]
+    t: ClientTime
     time: Annotated[float, Field(gt=0.0, le=60.0)]
     triangles: Count
     vertices: Count

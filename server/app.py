@@ -1,40 +1,60 @@
 """The FastAPI service: ``/ws`` moves bytes between a websocket and a ``Session``.
 
 The handler owns the clock and the socket and nothing else. A reader task
-queues incoming frames; the main loop waits for a frame or for the session's
-next deadline, whichever comes first, and sends what the session returns.
-Selections run in a worker thread so that one session's solve never stalls the
-event loop for the others.
+stamps, counts and rate-limits incoming frames and queues them; the session
+loop waits for a frame, the session's next deadline or the idle timeout,
+whichever comes first, and sends what the session returns. Selections (and the
+encoding of their deltas) run in the app's own thread pool, so one session's
+solve never stalls the event loop for the others. The loop awaits each send
+before it polls again: a client that does not read makes only its own session
+wait (uvicorn's send waits while the transport's buffer is full).
+
+Session state is saved to a ``StateStore`` after each delta, after acks that
+changed it (at most every ``Limits.save_interval``) and on disconnect, so a
+client that lost its connection can resume on any replica sharing the store.
 """
 
 from __future__ import annotations
 
 import asyncio
+import hmac
 import logging
 import socket
 import time
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Mapping
 
-from fastapi import FastAPI, WebSocket, WebSocketDisconnect
+from fastapi import Depends, FastAPI, HTTPException, Request, Response, WebSocket, WebSocketDisconnect
+from pydantic import BaseModel
 
-from proto.codec import MAX_CLIENT_FRAME, encode
-from proto.messages import Error
+from proto.codec import decode_client, encode
+from proto.errors import ERROR_CODES, ProtocolError
+from proto.messages import Delta, Error, Hello, Resume
 
+from .limits import WS_MAX_SIZE, Limits, RateGuard
+from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .scene.store import SceneStore
-from .session import Session, SessionConfig
+from .session import Session, SessionConfig, SessionState
+from .state import MemoryStateStore, StateStore, open_state_store
 
-__all__ = ["create_app", "load_scenes", "serve"]
+__all__ = ["create_app", "load_scenes", "serve", "ServeError", "WS_MAX_SIZE"]
 
 log = logging.getLogger("walkstream.server")
 
-#: Frames above this are refused by the websocket layer itself (close 1009); between
-#: MAX_CLIENT_FRAME and this, the codec answers with a ``too_large`` error frame.
-WS_MAX_SIZE = 1024 * 1024
 _TICK = object()
 _GONE = object()
+_WAKE = object()
+
+#: Websocket close codes: normal, policy violation (flooding), try again later (busy).
+CLOSE_NORMAL, CLOSE_POLICY, CLOSE_BUSY = 1000, 1008, 1013
+_SOCKET_GONE = (WebSocketDisconnect, RuntimeError, OSError)
+
+
+class ServeError(RuntimeError):
+    """The server cannot start as asked (e.g. its state store is unreachable)."""
 
 
 def load_scenes(paths: list[Path]) -> dict[str, SceneStore]:
@@ -49,28 +69,123 @@ def load_scenes(paths: list[Path]) -> dict[str, SceneStore]:
     return scenes
 
 
-def create_app(scenes: Mapping[str, SceneStore], config: SessionConfig | None = None) -> FastAPI:
+def _error(code: str, detail: str = "") -> Error:
+    return Error(code=code, message=detail or ERROR_CODES[code])
+
+
+class _Connection:
+    """One websocket's session and the loop's controls: its inbox, a close request, when it was last heard."""
+
+    def __init__(self, ws: WebSocket, session: Session, now: float) -> None:
+        self.ws = ws
+        self.session = session
+        self.inbox: asyncio.Queue = asyncio.Queue(maxsize=256)
+        self.closing: tuple[str, int, str] | None = None  # (error code, close code, message)
+        self.done = asyncio.Event()
+        self.last_heard = now
+        self.last_save = -1e18
+        self.opened = now
+        self.send_since: float | None = None  # when the pending send began (None: not sending)
+        self.resumed = False
+        self.gone = False  # the reader saw the socket end but could not queue that
+
+    def request_close(self, code: str, close_code: int, message: str = "") -> None:
+        """Ask the session loop to send ``Error(code)`` and close; it acts at its next wake."""
+        if self.closing is None:
+            self.closing = (code, close_code, message or ERROR_CODES[code])
+        try:
+            self.inbox.put_nowait(_WAKE)
+        except asyncio.QueueFull:
+            pass  # the loop is busy with queued frames and checks ``closing`` before each
+
+    def info(self, now: float) -> dict:
+        try:
+            stats = self.session.stats
+        except Exception:  # read while a worker changes the session: report what is certain
+            stats = {"session": self.session.id, "state": self.session.state.value}
+        return {
+            **stats,
+            "resumed": self.resumed,
+            "connected_s": round(now - self.opened, 3),
+            "idle_s": round(now - self.last_heard, 3),
+            "send_wait_s": 0.0 if self.send_since is None else round(now - self.send_since, 3),
+        }
+
+
+def create_app(
+    scenes: Mapping[str, SceneStore],
+    config: SessionConfig | None = None,
+    *,
+    state: StateStore | None = None,
+    limits: Limits | None = None,
+    admin_token: str | None = None,
+    replica: str | None = None,
+) -> FastAPI:
+    """The service for ``scenes``; ``state`` keeps session state for resumes (default: in this process's memory)."""
     config = config or SessionConfig()
-    sessions: dict[str, Session] = {}
+    limits = limits or Limits()
+    store: StateStore = state if state is not None else MemoryStateStore()
+    replica = replica or socket.gethostname()
+    conns: dict[str, _Connection] = {}
+    sessions: dict[str, Session] = {}  # the same, by session (tests and /sessions look here)
+    metrics = Metrics(lambda: len(conns))
+    pool = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="walkstream-select")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        yield
-        for store in scenes.values():
-            store.close()
+        try:
+            yield
+        finally:
+            for conn in list(conns.values()):
+                conn.request_close("closed", CLOSE_NORMAL, "the server is shutting down")
+            pool.shutdown(wait=True, cancel_futures=True)
+            try:
+                await store.close()
+            except Exception:
+                log.exception("closing the state store failed")
+            for s in scenes.values():
+                s.close()
 
-    app = FastAPI(title="walkstream", version="0.1.0", lifespan=lifespan)
+    app = FastAPI(title="walkstream", version="0.2.0", lifespan=lifespan)
     app.state.sessions = sessions
+    app.state.connections = conns
+    app.state.metrics = metrics
+    app.state.limits = limits
+    app.state.store = store
+    app.state.pool = pool
+
+    def register(conn: _Connection) -> None:
+        conns[conn.session.id] = conn
+        sessions[conn.session.id] = conn.session
+
+    def unregister(conn: _Connection) -> None:
+        sid = conn.session.id
+        if conns.get(sid) is conn:
+            del conns[sid]
+            sessions.pop(sid, None)
+
+    # ------------------------------------------------------------------ REST
+
+    def require_admin(request: Request) -> None:
+        """Bearer-token check for the admin endpoints (constant-time compare)."""
+        if not admin_token:
+            raise HTTPException(403, "admin endpoints are disabled: start the server with --admin-token TOKEN "
+                                     "(or WALKSTREAM_ADMIN_TOKEN) to enable them")
+        scheme, _, given = request.headers.get("authorization", "").partition(" ")
+        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), admin_token.encode()):
+            raise HTTPException(401, "a valid 'Authorization: Bearer <admin token>' header is required",
+                                headers={"WWW-Authenticate": "Bearer"})
 
     @app.get("/health")
     async def health() -> dict:
-        return {"status": "ok", "sessions": len(sessions), "scenes": sorted(scenes)}
+        return {"status": "ok", "replica": replica, "sessions": len(conns), "max_sessions": limits.max_sessions,
+                "scenes": sorted(scenes)}
 
     @app.get("/scenes")
     async def list_scenes() -> list[dict]:
         out = []
-        for name, store in sorted(scenes.items()):
-            idx = store.index
+        for name, s in sorted(scenes.items()):
+            idx = s.index
             last = idx.rep_first + idx.rep_count - 1
             out.append(
                 {
@@ -84,17 +199,96 @@ def create_app(scenes: Mapping[str, SceneStore], config: SessionConfig | None = 
             )
         return out
 
-    @app.get("/sessions")
+    @app.get("/metrics")
+    async def prometheus() -> Response:
+        return Response(metrics.render(), media_type=CONTENT_TYPE_LATEST)
+
+    @app.get("/sessions", dependencies=[Depends(require_admin)])
     async def list_sessions() -> list[dict]:
-        return [s.stats for s in sessions.values()]
+        now = time.monotonic()
+        return [c.info(now) for c in conns.values()]
+
+    @app.delete("/sessions/{session_id}", dependencies=[Depends(require_admin)])
+    async def close_session(session_id: str) -> dict:
+        conn = conns.get(session_id)
+        if conn is None:
+            raise HTTPException(404, f"no session {session_id!r} on this replica")
+        conn.request_close("closed", CLOSE_NORMAL)
+        try:
+            await asyncio.wait_for(conn.done.wait(), 5.0)
+        except asyncio.TimeoutError:  # stuck in a send to a client that does not read: keepalive ends it
+            return {"session": session_id, "closed": False}
+        return {"session": session_id, "closed": True}
+
+    # ------------------------------------------------------------------ state
+
+    async def save(session: Session) -> None:
+        """Snapshot (in a worker: it packs arrays) and store the session for a later resume."""
+        if session.state is not SessionState.ACTIVE:
+            return
+        loop = asyncio.get_running_loop()
+        try:
+            blob = await loop.run_in_executor(pool, session.snapshot)
+            await store.save(session.id, session.token, blob, limits.state_ttl)
+        except Exception as exc:
+            metrics.state_failures.labels("save").inc()
+            log.warning("saving session %s failed: %s", session.id, exc)
+
+    async def resume(conn: _Connection, ask: Resume) -> str:
+        """Take over session ``ask.session`` if the store has it and the token matches; returns the outcome."""
+        try:
+            found = await store.load(ask.session)
+        except Exception as exc:
+            metrics.state_failures.labels("load").inc()
+            log.warning("loading session %s failed: %s", ask.session, exc)
+            return "not_found"
+        if found is None:
+            return "not_found"
+        if not hmac.compare_digest(found[0].encode(), ask.token.encode()):
+            return "bad_token"
+        old = conns.get(ask.session)
+        if old is not None and old is not conn:
+            # The old connection is not yet noticed as dead: end it, and take the state it saves on leaving.
+            old.request_close("closed", CLOSE_NORMAL, "the session was resumed on another connection")
+            try:
+                await asyncio.wait_for(old.done.wait(), 5.0)
+            except asyncio.TimeoutError:
+                log.warning("session %s: the old connection did not end in time; resuming from the last save",
+                            ask.session)
+            found = await store.load(ask.session) or found
+        session = Session(scenes, ask.session, config, token=found[0])
+        loop = asyncio.get_running_loop()
+        try:
+            await loop.run_in_executor(pool, session.restore, found[1])
+        except ValueError as exc:
+            log.warning("session %s: saved state does not restore (%s); starting afresh", ask.session, exc)
+            return "corrupt"
+        unregister(conn)
+        conn.session = session
+        conn.resumed = True
+        register(conn)
+        return "resumed"
+
+    # ------------------------------------------------------------------ websocket
 
     @app.websocket("/ws")
     async def ws_endpoint(ws: WebSocket) -> None:
         await ws.accept()
+        if len(conns) >= limits.max_sessions:
+            metrics.refused.labels("busy").inc()
+            metrics.errors.labels("busy").inc()
+            try:
+                await ws.send_bytes(encode(_error("busy", f"this replica serves its maximum of "
+                                                          f"{limits.max_sessions} sessions; try another or later")))
+                await ws.close(CLOSE_BUSY)
+            except _SOCKET_GONE:
+                pass
+            return
         loop = asyncio.get_running_loop()
-        session = Session(scenes, uuid.uuid4().hex, config)
-        sessions[session.id] = session
-        inbox: asyncio.Queue = asyncio.Queue(maxsize=256)
+        now = time.monotonic()
+        conn = _Connection(ws, Session(scenes, uuid.uuid4().hex, config), now)
+        register(conn)
+        guard = RateGuard(limits, now)
 
         async def reader() -> None:
             try:
@@ -102,47 +296,168 @@ def create_app(scenes: Mapping[str, SceneStore], config: SessionConfig | None = 
                     msg = await ws.receive()
                     if msg["type"] == "websocket.disconnect":
                         break
-                    data = msg.get("bytes")
                     # Stamped on arrival: a pong's round trip must not include a selection it waited behind.
-                    await inbox.put((data if data is not None else (msg.get("text") or ""), time.monotonic()))
-            except (WebSocketDisconnect, RuntimeError, OSError):
+                    t = time.monotonic()
+                    conn.last_heard = t
+                    metrics.messages_in.inc()
+                    verdict = guard.check(t)
+                    if verdict == RateGuard.PASS:
+                        data = msg.get("bytes")
+                        await conn.inbox.put((data if data is not None else (msg.get("text") or ""), t))
+                        continue
+                    metrics.refused.labels("rate").inc()
+                    if verdict == RateGuard.CLOSE:
+                        metrics.refused.labels("abuse").inc()
+                        conn.request_close("rate_limited", CLOSE_POLICY,
+                                           f"more than {limits.rate:g} messages/s for {limits.abuse_close:g} s; "
+                                           "closing")
+                        break
+                    if verdict == RateGuard.ANSWER:
+                        await conn.inbox.put(_error("rate_limited", f"more than {limits.rate:g} messages/s "
+                                                                    f"(burst {limits.burst:g}); dropped"))
+            except _SOCKET_GONE:
                 pass
             finally:
-                await inbox.put(_GONE)
+                # Never block here: a full inbox means the loop is busy and will see the socket gone on its send.
+                try:
+                    conn.inbox.put_nowait(_GONE)
+                except asyncio.QueueFull:
+                    conn.gone = True
 
-        def poll_encoded(now: float) -> list[bytes]:
-            # Selection and the msgpack of a delta full of geometry both run off the event loop.
-            return [encode(m) for m in session.poll(now)]
+        def poll_encoded(session: Session, now: float) -> tuple[list[tuple[bytes, str | None]], bool, float, bytes | None]:
+            """In a worker: run what is due, encode it, and snapshot the state if a delta went out."""
+            began = time.thread_time()
+            out = session.poll(now)
+            frames = [(encode(m), m.code if isinstance(m, Error) else None) for m in out]
+            delta = any(isinstance(m, Delta) for m in out)
+            cpu = time.thread_time() - began
+            blob = session.snapshot() if delta else None
+            return frames, delta, cpu, blob
+
+        async def send(frames: list[tuple[bytes, str | None]]) -> None:
+            for frame, code in frames:
+                conn.send_since = time.monotonic()
+                await ws.send_bytes(frame)
+                conn.send_since = None
+                metrics.bytes_out.inc(len(frame))
+                if code is not None:
+                    metrics.errors.labels(code).inc()
+
+        def encoded(messages: list[BaseModel]) -> list[tuple[bytes, str | None]]:
+            return [(encode(m), m.code if isinstance(m, Error) else None) for m in messages]
+
+        async def first(data, t: float) -> list[BaseModel]:
+            """A frame before the session is open: a hello (resumed if it asks and may) or a refusal."""
+            try:
+                message = decode_client(data)
+            except ProtocolError:
+                return conn.session.receive(data, t)  # answers with the error frame and counts it
+            if isinstance(message, Hello):
+                outcome = "fresh" if message.resume is None else await resume(conn, message.resume)
+                metrics.resumes.labels(outcome).inc()
+                # A hello builds the session's scene tables: off the loop.
+                return await loop.run_in_executor(pool, conn.session.receive, message, t)
+            return conn.session.receive(message, t)
 
         read_task = asyncio.create_task(reader())
         try:
             while True:
+                if conn.gone:
+                    break
+                if conn.closing is not None:
+                    code, close_code, text = conn.closing
+                    await send(encoded([_error(code, text)]))
+                    await ws.close(close_code)
+                    break
+                session = conn.session
                 deadline = session.next_deadline()
-                timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+                now = time.monotonic()
+                wake = conn.last_heard + limits.idle_timeout
+                if deadline is not None:
+                    wake = min(wake, deadline)
+                if session.dirty and session.state is SessionState.ACTIVE:
+                    wake = min(wake, conn.last_save + limits.save_interval)
                 try:
-                    item = await asyncio.wait_for(inbox.get(), timeout)
+                    item = await asyncio.wait_for(conn.inbox.get(), max(0.0, wake - now))
                 except asyncio.TimeoutError:
                     item = _TICK
                 if item is _GONE:
                     break
+                if item is _WAKE:
+                    continue
                 try:
                     if item is _TICK:
-                        frames = await loop.run_in_executor(None, poll_encoded, time.monotonic())
+                        now = time.monotonic()
+                        if now >= conn.last_heard + limits.idle_timeout:
+                            metrics.refused.labels("idle").inc()
+                            conn.request_close("idle", CLOSE_NORMAL, f"nothing heard for {limits.idle_timeout:g} s; "
+                                                                     "the session is closed")
+                            continue
+                        if deadline is not None and now >= deadline:
+                            frames, delta, cpu, blob = await loop.run_in_executor(pool, poll_encoded, session, now)
+                            await send(frames)
+                            if delta:
+                                metrics.selection_seconds.observe(time.monotonic() - deadline)
+                                metrics.selection_cpu_seconds.observe(cpu)
+                                conn.last_save = time.monotonic()
+                                try:
+                                    await store.save(session.id, session.token, blob, limits.state_ttl)
+                                except Exception as exc:
+                                    metrics.state_failures.labels("save").inc()
+                                    log.warning("saving session %s failed: %s", session.id, exc)
+                        elif session.dirty and now >= conn.last_save + limits.save_interval:
+                            conn.last_save = now
+                            await save(session)
+                        continue
+                    if isinstance(item, Error):  # the reader's rate_limited answer
+                        await send(encoded([item]))
+                        continue
+                    data, t = item
+                    if session.state is SessionState.AWAIT_HELLO:
+                        out = await first(data, t)
                     else:
-                        frames = [encode(m) for m in session.receive(*item)]
+                        out = session.receive(data, t)
+                except _SOCKET_GONE:
+                    raise
                 except Exception:  # a bug of ours: log loudly, tell the client, keep the session
-                    log.exception("session %s failed", session.id)
-                    frames = [encode(Error(code="internal", message="the server failed handling that message"))]
-                for frame in frames:
-                    await ws.send_bytes(frame)
-        except (WebSocketDisconnect, RuntimeError, OSError):
+                    log.exception("session %s failed", conn.session.id)
+                    out = [_error("internal", "the server failed handling that message")]
+                await send(encoded(out))
+                session = conn.session
+                if session.dirty and time.monotonic() >= conn.last_save + limits.save_interval:
+                    conn.last_save = time.monotonic()
+                    await save(session)
+        except _SOCKET_GONE:
             pass  # the client went away mid-send: nothing to tell it
         finally:
             read_task.cancel()
-            session.close()
-            sessions.pop(session.id, None)
+            session = conn.session
+            try:
+                # On disconnect: the state a resume continues from — unless a newer connection took the session
+                # over (it saves its own), or nothing changed since the last save (no stale write over a newer one).
+                if conns.get(session.id) is conn and session.dirty:
+                    await save(session)
+            finally:
+                session.close()
+                unregister(conn)
+                conn.done.set()
 
     return app
+
+
+def check_state_url(url: str, timeout: float = 3.0) -> None:
+    """Refuse to start when the Redis at ``url`` does not answer (a clear error beats failing every resume)."""
+    import redis
+
+    from .state import _redact
+
+    client = redis.Redis.from_url(url, socket_connect_timeout=timeout, socket_timeout=timeout)
+    try:
+        client.ping()
+    except Exception as exc:
+        raise ServeError(f"the Redis state store at {_redact(url)} is unreachable: {exc}") from None
+    finally:
+        client.close()
 
 
 def serve(
@@ -152,19 +467,35 @@ def serve(
     config: SessionConfig | None = None,
     log_level: str = "warning",
     announce=print,
+    *,
+    limits: Limits | None = None,
+    state_url: str | None = None,
+    admin_token: str | None = None,
+    replica: str | None = None,
 ) -> None:
     """Run uvicorn on ``host:port`` (port 0: any free port, announced once listening)."""
     import uvicorn
 
+    limits = limits or Limits()
+    try:
+        state = open_state_store(state_url)
+    except Exception as exc:  # an unknown scheme, a malformed URL
+        raise ServeError(str(exc)) from None
+    if not isinstance(state, MemoryStateStore):
+        check_state_url(state_url)
     scenes = load_scenes(paths)
-    app = create_app(scenes, config)
     sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    if limits.send_buffer is not None:  # accepted connections inherit it (and lose autotuning)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, limits.send_buffer)
     sock.bind((host, port))
     sock.listen(128)  # connections queue in the backlog until uvicorn accepts them
     bound = sock.getsockname()[1]
+    app = create_app(scenes, config, state=state, limits=limits, admin_token=admin_token,
+                     replica=replica or f"{socket.gethostname()}:{bound}")
     announce(f"walkstream: serving {', '.join(sorted(scenes))} on http://{host}:{bound} (websocket /ws)")
     server = uvicorn.Server(
-        uvicorn.Config(app, log_level=log_level, ws_max_size=WS_MAX_SIZE, ws_ping_interval=20, ws_ping_timeout=20)
+        uvicorn.Config(app, log_level=log_level, ws_max_size=limits.max_message,
+                       ws_ping_interval=limits.ping_interval, ws_ping_timeout=limits.ping_timeout)
     )
     server.run(sockets=[sock])

@@ -90,8 +90,10 @@ class Delivery:
         took = clock.server_time(client_t) - sent_at
         self.last = took
         transfer = took - select_time - 0.5 * clock.rtt
-        if nbytes >= self.min_bytes and transfer > 1e-4:
-            self._rates.append(nbytes / transfer)
+        if nbytes >= self.min_bytes:
+            # A transfer too quick to see (a fast link, or estimates that overshoot) still says the link is fast:
+            # counted as a millisecond, capped at 1 GB/s, rather than left at the first guess.
+            self._rates.append(min(nbytes / max(transfer, 1e-3), 1e9))
             self.bandwidth = float(np.median(self._rates))
         return took
 

@@ -28,7 +28,9 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
+import secrets
 import time
+import zlib
 from dataclasses import dataclass
 from typing import Mapping, Protocol
 
@@ -37,7 +39,7 @@ from pydantic import BaseModel
 
 from proto.codec import decode_client
 from proto.errors import ProtocolError
-from proto.manifest import mix
+from proto.manifest import digest, mix, unpack_held
 from proto.messages import (
     ALGORITHMS,
     PROTOCOL_VERSION,
@@ -57,6 +59,7 @@ from proto.messages import (
     Welcome,
 )
 
+from . import state as _snap
 from .clock import ClockSync, Delivery
 from .select import solvers
 from .select.benefit import BenefitFactors, importance_table
@@ -67,6 +70,7 @@ from .select.morph import MorphScheduler, mark, rep_parents
 from .select.predict import Limits, Predictor, conservative_camera
 from .select.selection import Interval, Memory, Scene, select
 from .select.solvers.candidates import Limit
+from .stream import gain, gate, realise_bytes, resident_fallback
 
 __all__ = ["Session", "SessionConfig", "SessionState", "SceneSource"]
 
@@ -107,6 +111,9 @@ class SessionConfig:
     clock_wait : seconds regular selections wait for the first pong (a client that never answers pings
         gets them after that, timed by a guess)
     factors : which F&S benefit factors the selection applies, and their weights (None: all, defaults)
+    bandwidth : the link's first guess, bytes/s, until acks of large deltas measure it
+    link_share : share of the measured bandwidth × τ one delta's new representations may take (the rest is
+        headroom for morph intermediates, pings and estimation error); what is still in flight counts against it
     cost_model : "online" — F&S's coefficients fitted to the frame reports by robust recursive least
         squares, the simplest adequate model chosen (``select.cost_online``); "zach" — the running
         c_vertex average alone (Zach 2002, 4.2), for comparison
@@ -127,6 +134,8 @@ class SessionConfig:
     clock_wait: float = 3.0
     factors: BenefitFactors | None = None
     cost_model: str = "online"
+    link_share: float = 0.8
+    bandwidth: float = 10.0e6
 
     def __post_init__(self) -> None:
         if self.cost_model not in ("online", "zach"):
@@ -134,9 +143,14 @@ class SessionConfig:
 
 
 class Session:
-    def __init__(self, scenes: Mapping[str, SceneSource], session_id: str, config: SessionConfig | None = None):
+    def __init__(self, scenes: Mapping[str, SceneSource], session_id: str, config: SessionConfig | None = None,
+                 token: str | None = None):
         self.scenes = scenes
         self.id = session_id
+        # The secret a resume must present with ``id`` (proto Resume.token); a resumed session keeps its own.
+        self.token = token or secrets.token_urlsafe(24)
+        if not _snap.TOKEN.fullmatch(self.token):
+            raise ValueError("a session token is 16–128 characters of [A-Za-z0-9_-]")
         self.config = config or SessionConfig()
         self.state = SessionState.AWAIT_HELLO
         self.hello: Hello | None = None
@@ -159,7 +173,7 @@ class Session:
         self._memory = Memory()
         self.last_stats: dict = {}
         self.clock = ClockSync()
-        self.delivery = Delivery()
+        self.delivery = Delivery(bandwidth=self.config.bandwidth)
         self.predictor: Predictor | None = None
         self._switch: float | None = None  # the last delta's switch time (client clock)
         self._planned = 0.0  # the next delta's switch time
@@ -167,6 +181,7 @@ class Session:
         self._reset = True  # the next delta replaces what is drawn (first, or after a teleport)
         self._next_ping: float | None = None
         self._ping_id = 0
+        self._pings: dict[int, float] = {}  # id → stamp of each ping not yet answered
         self._select_time = self.config.select_limit  # running estimate of a selection's wall time
         self._delta_bytes = 0.0  # running estimate of a (non-reset) delta's size
         self._starts: dict[int, tuple[float, bool]] = {}  # seq → (start, reset), for the late check
@@ -181,7 +196,14 @@ class Session:
         self.mirror_checks = 0  # acks whose held/held_bytes/digest were compared with the mirror
         self.mirror_mismatch = 0  # ... and did not match (each triggers a resync)
         self.resyncs = 0  # deltas that dropped everything and restarted the mirror empty
+        # The streaming gate's counters (``_gate``): choices that waited for bytes, drawn coarser or not at all.
+        self.deferred = 0
+        self.fallbacks = 0
+        self.last_gate: dict = {}
+        self._morph_share = 0.1  # morph-map bytes per geometry byte sent, learned from the adds
         self._held = [0, 0, 0]  # the mirror's count, bytes and digest (set up by the hello)
+        self._restored: dict | None = None  # a snapshot ``restore`` took in, that the hello applies or discards
+        self._saved: tuple | None = None  # ``_progress()`` at the last snapshot (see ``dirty``)
 
     # ------------------------------------------------------------------ input
 
@@ -206,7 +228,9 @@ class Session:
                     self.next_selection = now  # the first pose is answered at once
                 return []
             if isinstance(message, Pong):
-                if message.id <= self._ping_id:
+                # Only the stamp we sent under that id counts: a forged one would skew the clock (fuzzing found
+                # a pong claiming a ping from 1e308 s ago pushing every schedule past the end of time).
+                if self._pings.pop(message.id, None) == message.sent:
                     self.clock.add(message.sent, message.t, now)
                 return []
             if isinstance(message, Ack):
@@ -253,6 +277,9 @@ class Session:
             raise ProtocolError("unknown_scene", f"no scene {hello.scene!r}; served: {known}")
         if hello.solver not in solvers.SOLVERS:
             raise ProtocolError("unknown_solver", f"no solver {hello.solver!r}; known: {', '.join(sorted(solvers.SOLVERS))}")
+        n_reps = self.scenes[hello.scene].index.n_representations
+        held = None if hello.held is None else unpack_held(hello.held, n_reps)  # bad_held: nothing changed yet
+        resumed = self._resumes(hello)
         self.hello = hello
         self.scene_name = hello.scene
         self._algorithms = tuple(ALGORITHMS.index(a) for a in hello.algorithms)
@@ -281,12 +308,20 @@ class Session:
         self._rep_morph = np.asarray(index.rep_morph, bool)
         self._rep_parent = rep_parents(index.rep_level, index.rep_object, index.object_parent,
                                        index.rep_first, index.rep_count)
+        self._rep_object = np.asarray(index.rep_object, np.int64)
+        self._rep_first_of = np.asarray(index.rep_first, np.int64)[self._rep_object]
+        self._rep_faces = np.asarray(index.rep_faces, np.int64)
+        self._object_lo = np.asarray(index.object_lo, np.float64)
+        self._object_hi = np.asarray(index.object_hi, np.float64)
+        self._prev_rep = np.full(int(index.n_objects), -1, np.int64)  # the rep each object drew last delta
+        self._obj_rank = None
         self._drawn = np.zeros(0, np.int64)
         self._morph = MorphScheduler(self.config.tau, morph=hello.morph)
         self._ramp = MorphScheduler(self.config.tau, morph=hello.morph)
         if hello.predict:
             turn = None if hello.max_turn is None else float(np.radians(hello.max_turn))
             self.predictor = Predictor(Limits(speed=hello.max_speed, turn=turn))
+        self._adopt(held, resumed)
         self.state = SessionState.ACTIVE
         self._next_ping = now + self.config.ping_interval
         self._hello_at = now
@@ -302,12 +337,18 @@ class Session:
                 tour=[TourKey(**key) for key in index.tour],
                 predict=hello.predict,
                 morph=hello.morph,
+                token=self.token,
+                resumed=resumed,
+                held=self._held[0],
             ),
             self._ping(now),
         ]
 
     def _ping(self, now: float) -> Ping:
         self._ping_id += 1
+        self._pings[self._ping_id] = now
+        if len(self._pings) > 16:  # pings never answered are forgotten
+            self._pings.pop(min(self._pings))
         return Ping(id=self._ping_id, sent=now)
 
     def _ack(self, ack: Ack) -> list[BaseModel]:
@@ -478,12 +519,14 @@ class Session:
         if len(self._pixels_predicted) > 64:
             self._pixels_predicted.pop(min(self._pixels_predicted))
         self.seq += 1
-        reps = choice.reps
+        reps, algorithm = self._gate(choice.reps, choice.algorithm, view, now)
         level = self._rep_level[reps]
         key = reps - level
         kind, _ = mark(self._rep_parent, self._drawn, reps)
         tr = self._morph.schedule(key, level.astype(np.float64), start, switch, reset=reset, kind=kind)
         self._drawn = reps
+        self._prev_rep[:] = -1
+        self._prev_rep[self._rep_object[reps]] = reps
         needed = _expand(tr.needed_key, tr.needed_lo, tr.needed_hi)
         vegetation, resolution, ramps = [], [], Morphs()
         drawn_groups = groups = np.zeros(0, np.int64)
@@ -496,6 +539,10 @@ class Session:
             drawn_groups = np.asarray(choice.x_reps, np.int64)[np.asarray(choice.x) > 0]
             groups = np.union1d(drawn_groups, rt.needed_key[rt.needed_hi > 0]).astype(np.int64)
         new, drop = self._mirror(np.concatenate([reps, drawn_groups]), np.concatenate([needed, groups]))
+        if new.size and self._obj_rank is not None:
+            # Best benefit per byte first (a chain's intermediates with their target, coarse before fine).
+            rank = self._obj_rank[self._rep_object[new]]
+            new = new[np.lexsort((self._rep_level[new], rank))]
         add, models, nbytes = self._adds(new)
         self.bytes_sent += nbytes
         morphs = Morphs(
@@ -525,7 +572,7 @@ class Session:
             drop=drop.tolist(),
             models=models,
             selection=reps.tolist(),
-            algorithm=[] if choice.algorithm is None else choice.algorithm.tolist(),
+            algorithm=[] if algorithm is None else algorithm.tolist(),
             budget=budget,
             predicted_cost=choice.cost,
             cost_coeff=self.cost.c_vertex,
@@ -534,6 +581,78 @@ class Session:
             resolution=resolution,
             ramps=ramps,
         )
+
+    def _byte_budget(self, now: float) -> float:
+        """Bytes this delta's new representations may take: bandwidth × τ × link_share, less what is in flight."""
+        link = self.delivery.bandwidth * self.config.tau * self.config.link_share
+        left = max(link - self.delivery.in_flight(now, horizon=max(4 * self.config.tau, 1.0)), 0.0)
+        self.last_gate["link"] = left
+        return left / (1.0 + self._morph_share)  # the gate counts geometry; morph maps ride along
+
+    def _gate(self, reps: np.ndarray, algorithm: np.ndarray | None, view, now: float):
+        """The selection as the link allows it (``stream``).
+
+        Each object whose choice needs bytes offers two increments over its best
+        resident ancestor: a coarse stand-in (the next level up from what is held)
+        and the full choice, merged into one where the full choice is the denser
+        (F&S's concave hull). The gate sends the densest within the byte budget;
+        an object whose choice does not go is drawn with what it got, or what it
+        held, or not at all — never costlier than chosen.
+        """
+        self._obj_rank = None
+        lacking = ~self._resident[reps]
+        self.last_gate = {}
+        budget = self._byte_budget(now)
+        self.last_gate |= {"budget": budget, "bandwidth": self.delivery.bandwidth, "lacking": int(lacking.sum()),
+                          "deferred": 0, "fallback": 0, "stand_in": 0, "bytes": 0}
+        if not lacking.any():
+            return reps, algorithm
+        idx = np.nonzero(lacking)[0]
+        r = reps[idx]
+        k = r.size
+        obj = self._rep_object[r]
+        first = self._rep_first_of[r]
+        previous = self._prev_rep[obj]
+        fallback = resident_fallback(r, first, self._resident)
+        coarse = np.where(fallback >= 0, fallback + 1, first)  # the next level up from what is held
+        nb_full = realise_bytes(r, previous, first, self._rep_bytes, self._resident)
+        nb_coarse = realise_bytes(coarse, previous, first, self._rep_bytes, self._resident)
+        cam = view.views[0] if hasattr(view, "views") else view
+        faces = self._rep_faces
+        held_faces = np.where(fallback >= 0, faces[np.maximum(fallback, 0)], 0)
+        lo, hi, clip = self._object_lo[obj], self._object_hi[obj], cam.matrix()
+        g_full = gain(lo, hi, clip, cam.width, cam.height, faces[r], held_faces)
+        g_coarse = gain(lo, hi, clip, cam.width, cam.height, faces[coarse], held_faces)
+        # Two increments where the stand-in is a real step and the denser one; else the full choice alone.
+        two = (coarse < r) & (g_coarse * np.maximum(nb_full, 1) >= (g_full - g_coarse) * np.maximum(nb_coarse, 1))
+        n2 = int(two.sum())
+        gains = np.concatenate([np.where(two, g_full - g_coarse, g_full), g_coarse[two]])
+        sizes = np.concatenate([nb_full, nb_coarse[two]])
+        requires = np.full(k + n2, -1, np.int64)
+        requires[np.nonzero(two)[0]] = k + np.arange(n2)  # the full choice builds on its stand-in
+        in_flight = self.delivery.in_flight(now, horizon=max(4 * self.config.tau, 1.0))
+        decision = gate(gains, sizes, budget, at_least_one=in_flight == 0, requires=requires)
+        full_sent = decision.send[:k]
+        coarse_sent = np.zeros(k, bool)
+        coarse_sent[np.nonzero(two)[0]] = decision.send[k:]
+        shown = np.where(full_sent, r, np.where(coarse_sent, coarse, fallback))
+        # Send order, per object: by its first increment in the gate's density order.
+        pos = np.empty(k + n2, np.int64)
+        pos[decision.order] = np.arange(k + n2)
+        first_pos = pos[:k].copy()
+        first_pos[np.nonzero(two)[0]] = pos[k:]
+        rank = np.full(self._prev_rep.size, k + n2, np.int64)
+        rank[obj] = first_pos
+        self._obj_rank = rank
+        out = reps.copy()
+        out[idx] = shown
+        keep = out >= 0
+        held_back = ~full_sent
+        self.deferred += int(held_back.sum())
+        self.fallbacks += int((held_back & (shown >= 0)).sum())
+        self.last_gate.update(deferred=int(held_back.sum()), fallback=int((held_back & (shown >= 0)).sum()),
+                              stand_in=int(coarse_sent[held_back].sum()), bytes=decision.bytes)
+        return out[keep], (None if algorithm is None else np.asarray(algorithm)[keep])
 
     def _mirror(self, selected: np.ndarray, needed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Bring the mirror to what this delta needs, within the budget; returns (reps to add, reps to drop).
@@ -611,8 +730,11 @@ class Session:
             self._models_sent = True
             n = int(index.model_points.shape[0])
             models = [ModelAdd(model=i, points=b) for i, b in enumerate(store.model_geometries(range(n)))]
-        nbytes = (sum(len(b) for b in blobs) + sum(len(m) for m in morph_maps if m)
-                  + sum(len(m.points) for m in models))
+        geometry = sum(len(b) for b in blobs)
+        maps = sum(len(m) for m in morph_maps if m)
+        nbytes = geometry + maps + sum(len(m.points) for m in models)
+        if geometry:  # what morph maps add to the geometry they come with, as this session sees it
+            self._morph_share += 0.3 * (maps / geometry - self._morph_share)
         return add, models, nbytes
 
     # ------------------------------------------------------------------ state
@@ -656,7 +778,185 @@ class Session:
             "mirror_checks": self.mirror_checks,
             "mirror_mismatch": self.mirror_mismatch,
             "resyncs": self.resyncs,
+            "bandwidth": self.delivery.bandwidth,
+            "deferred": self.deferred,
+            "fallbacks": self.fallbacks,
+            "gate": dict(self.last_gate),
         }
+
+    # ------------------------------------------------------------------ persistence (``server.state``)
+
+    #: Session attributes a snapshot carries as they are: counters, estimates, the pipeline stage.
+    _SAVED = ("seq", "frames", "errors", "bytes_sent", "last_frame_time", "late", "teleports", "acks", "evicted",
+              "over_budget", "refused", "mirror_checks", "mirror_mismatch", "resyncs", "_pixel_scale", "_ping_id",
+              "_select_time", "_delta_bytes", "_switch", "_planned")
+    #: ... and those that may come and go with the streaming code (a snapshot without them still loads).
+    _SAVED_OPTIONAL = ("deferred", "fallbacks")
+
+    def _progress(self) -> tuple:
+        """What moves when state worth saving changes: deltas, acks, frame reports, teleports, refusals."""
+        return (self.seq, self.acks, self.frames, self.teleports, self.refused, self.resyncs)
+
+    @property
+    def dirty(self) -> bool:
+        """True when the session has state worth saving that its last ``snapshot()`` does not hold."""
+        return self.hello is not None and self._progress() != self._saved
+
+    @dirty.setter
+    def dirty(self, value: bool) -> None:
+        self._saved = None if value else self._progress()
+
+    def snapshot(self) -> bytes:
+        """The session's state as msgpack (a few kB): enough for ``restore`` on any replica to resume it.
+
+        Cost model, camera history, clock, counters and pipeline stage, and the
+        client-cache mirror (bitsets; the last use of each held rep). Not the
+        in-flight bookkeeping (unacked deltas): a resume restarts the pipeline.
+        """
+        if self.hello is None:
+            raise RuntimeError(f"session {self.id} has said no hello yet: nothing to snapshot")
+        resident = self._resident
+        state = {
+            "session": self.id,
+            "scene": self.scene_name,
+            "n_reps": int(resident.size),
+            "hello": self.hello.model_dump(exclude={"held", "resume"}),
+            "fields": _snap.save_attrs(self, self._SAVED),
+            "optional": _snap.save_attrs(self, self._SAVED_OPTIONAL, optional=True),
+            "cost": _snap.cost_state(self.cost),
+            "predictor": None if self.predictor is None else _snap.predictor_state(self.predictor),
+            "clock": _snap.save_attrs(self.clock, _snap.CLOCK, optional=True),
+            "delivery": _snap.save_attrs(self.delivery, _snap.DELIVERY, optional=True),
+            "mirror": {
+                "resident": np.packbits(resident).tobytes(),
+                "sent": np.packbits(self._sent).tobytes(),
+                "used": zlib.compress(self._last_used[resident].astype("<i4").tobytes(), 1),  # runs of equal seqs
+                "held": [int(x) for x in self._held],
+                "models_sent": bool(self._models_sent),
+                "resync": bool(self._resync),
+            },
+        }
+        blob = _snap.pack_snapshot(state)
+        self._saved = self._progress()
+        return blob
+
+    def restore(self, blob: bytes) -> None:
+        """Take in a ``snapshot`` of this session, before its hello; ValueError (session unchanged) if the blob
+        is bad, of another session, or of a scene this server does not serve as it was.
+
+        Counters, seq, cost model and clock are set now; the hello applies the
+        mirror and the camera history if it resumes (``hello.resume``), and
+        otherwise starts afresh.
+        """
+        if self.state is not SessionState.AWAIT_HELLO or self.hello is not None:
+            raise RuntimeError("restore comes before the hello")
+        st = _snap.unpack_snapshot(blob)
+        if st.get("session") != self.id:
+            raise ValueError(f"the snapshot is of session {st.get('session')!r}, not {self.id!r}")
+        scene = st.get("scene")
+        if not isinstance(scene, str) or scene not in self.scenes:
+            raise ValueError(f"the snapshot's scene {scene!r} is not served here")
+        index = self.scenes[scene].index
+        m = int(index.n_representations)
+        if st.get("n_reps") != m:
+            raise ValueError(f"the snapshot's scene {scene!r} had {st.get('n_reps')!r} representations; it has {m}")
+        try:
+            hello = Hello.model_validate(st.get("hello"))
+        except Exception as exc:
+            raise ValueError(f"the snapshot's hello is invalid: {exc}") from None
+        if hello.scene != scene:
+            raise ValueError("the snapshot's hello names another scene")
+        # Decode everything into a scratch session first: a bad blob leaves this one as it was.
+        scratch = Session(self.scenes, self.id, self.config, token=self.token)
+        _snap.load_attrs(scratch, st.get("fields"), self._SAVED, "session", variable=())
+        _snap.load_attrs(scratch, st.get("optional", {}), self._SAVED_OPTIONAL, "session", optional=True)
+        _snap.load_cost(scratch.cost, st.get("cost"))
+        _snap.load_attrs(scratch.clock, st.get("clock"), _snap.CLOCK, "clock", optional=True)
+        _snap.load_attrs(scratch.delivery, st.get("delivery"), _snap.DELIVERY, "delivery", optional=True)
+        predictor = st.get("predictor")
+        if predictor is not None:
+            _snap.load_predictor(Predictor(), predictor)  # checked now, loaded into the hello's predictor
+        mirror = self._unpack_mirror(st.get("mirror"), index)
+        for name in self._SAVED + self._SAVED_OPTIONAL:
+            if hasattr(scratch, name):
+                setattr(self, name, getattr(scratch, name))
+        self.cost, self.clock, self.delivery = scratch.cost, scratch.clock, scratch.delivery
+        self.scene_name = scene
+        self._restored = {"scene": scene, "hello": hello, "predictor": predictor, "mirror": mirror}
+        self._saved = None
+
+    @staticmethod
+    def _unpack_mirror(d, index) -> dict:
+        """The snapshot's mirror as arrays, checked: bitsets of the scene's size, totals that add up."""
+        if not isinstance(d, dict):
+            raise ValueError("the snapshot has no mirror")
+        m = int(index.n_representations)
+
+        def bits(name: str) -> np.ndarray:
+            b = d.get(name)
+            if not isinstance(b, bytes) or len(b) != (m + 7) // 8:
+                raise ValueError(f"mirror.{name}: expected a bitset of {m} representations")
+            flags = np.unpackbits(np.frombuffer(b, np.uint8))
+            if flags[m:].any():
+                raise ValueError(f"mirror.{name}: bits beyond the scene's representations")
+            return flags[:m].astype(bool)
+
+        resident, sent = bits("resident"), bits("sent")
+        ids = np.flatnonzero(resident)
+        try:
+            inflate = zlib.decompressobj()
+            used = inflate.decompress(d.get("used"), 4 * ids.size + 1)
+        except (TypeError, zlib.error):
+            used = b""
+        if len(used) != 4 * ids.size or not inflate.eof:
+            raise ValueError("mirror.used: expected one last use per held representation")
+        held = d.get("held")
+        rep_bytes = np.asarray(index.rep_bytes, np.int64)
+        if held != [int(ids.size), int(rep_bytes[ids].sum()), digest(ids)]:
+            raise ValueError("mirror.held: the count, bytes and digest do not match the bitset")
+        flags = (d.get("models_sent"), d.get("resync"))
+        if not all(isinstance(f, bool) for f in flags):
+            raise ValueError("mirror: models_sent and resync are booleans")
+        return {"resident": resident, "sent": sent, "used": np.frombuffer(used, "<i4").astype(np.int64),
+                "models_sent": flags[0], "resync": flags[1]}
+
+    def _resumes(self, hello: Hello) -> bool:
+        """Whether this hello continues the restored snapshot; if not, whatever ``restore`` took in is forgotten."""
+        r = self._restored
+        if r is None:
+            return False
+        resume = hello.resume
+        if (resume is not None and resume.session == self.id and hello.scene == r["scene"]
+                and secrets.compare_digest(resume.token, self.token)):
+            return True
+        Session.__init__(self, self.scenes, self.id, self.config, token=self.token)  # a fresh start after all
+        return False
+
+    def _adopt(self, held: np.ndarray | None, resumed: bool) -> None:
+        """Set up the mirror from the hello's ``held`` (the client's word) or a resumed snapshot's, and restart
+        the pipeline of a resumed session; called by the hello once the scene's arrays are in place."""
+        if resumed:
+            r, self._restored = self._restored, None
+            mirror = r["mirror"]
+            self._resident, self._sent = mirror["resident"], mirror["sent"]
+            self._last_used[mirror["resident"]] = mirror["used"]
+            self._models_sent, self._resync = mirror["models_sent"], mirror["resync"]
+            if self.predictor is not None and r["predictor"] is not None:
+                _snap.load_predictor(self.predictor, r["predictor"])  # the new hello's limits stay
+            # The offsets were measured against the old replica's clock (another host's monotonic time): the
+            # welcome's ping measures them afresh. Round trip and bandwidth (``delivery``) are the link's and stay.
+            self.clock = ClockSync()
+            # The pipeline restarts with a reset delta, as after a teleport; seq numbers continue.
+            self._switch, self._reset, self.next_selection = None, True, None
+            self._acked, self._epoch = self.seq, self.seq + 1  # acks of deltas before the resume are stale
+        if held is not None:  # what the client says it holds is the mirror: nothing of it is sent again
+            resident = np.zeros(self._resident.size, bool)
+            resident[held] = True
+            self._resident, self._sent, self._resync = resident, resident.copy(), False
+            self._models_sent = bool(self._rep_trees[held].any()) or (resumed and self._models_sent)
+        ids = np.flatnonzero(self._resident)
+        self._held = [int(ids.size), int(self._rep_bytes[ids].sum()), digest(ids)]
+        self._saved = None
 
 
 @dataclass

@@ -44,3 +44,50 @@ def auditorium_store(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("scenes") / "auditorium.db"
     build_named("auditorium", path, seed=0)
     return path
+
+
+@pytest.fixture(scope="session")
+def redis_url(tmp_path_factory):
+    """A real redis-server on a free loopback port (no persistence), ready when yielded; stopped after."""
+    import shutil
+    import socket
+    import subprocess
+    import threading
+
+    exe = shutil.which("redis-server") or "/usr/bin/redis-server"
+    if not Path(exe).exists():
+        pytest.skip("redis-server is not installed (apt-get install redis-server)")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen(
+        [exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
+         "--dir", str(tmp_path_factory.mktemp("redis"))],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    ready = threading.Event()
+    log: list[str] = []
+
+    def drain() -> None:  # read the log (so the pipe never fills) and signal readiness
+        for line in proc.stdout:
+            log.append(line)
+            if "Ready to accept connections" in line:
+                ready.set()
+        ready.set()  # exited
+
+    threading.Thread(target=drain, daemon=True).start()
+    try:
+        if not ready.wait(10.0) or proc.poll() is not None:
+            raise RuntimeError(f"redis-server did not start on port {port}:\n{''.join(log)}")
+        import redis
+
+        client = redis.Redis(host="127.0.0.1", port=port, socket_connect_timeout=5)
+        assert client.ping() is True
+        client.close()
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

@@ -80,7 +80,7 @@ def test_loop_closes_and_a_hostile_client_harms_no_one(server):
         assert isinstance(decode_server(ws.recv(timeout=10)), Welcome)
 
     seen = list(frames_seen)  # what the server had been told when we ask it
-    sessions = httpx.get(server.http + "/sessions", timeout=10).json()
+    sessions = httpx.get(server.http + "/sessions", headers=server.admin_headers, timeout=10).json()
     worker.join(timeout=60)
     run = result["run"]
 
@@ -97,10 +97,11 @@ def test_loop_closes_and_a_hostile_client_harms_no_one(server):
     drawn = [f for f in seen if f.vertices >= 1000][-10:]
     times = np.array([f.time for f in drawn])
     verts = np.array([f.vertices for f in drawn], np.float64)
-    assert np.mean(np.abs(WRONG_GUESS * verts - times)) > 0.75 * np.mean(times)  # the guess really was wrong ...
+    # Medians: one frame stalled by the shared machine (150 ms seen) must not decide either side.
+    guessed = np.median(np.abs(WRONG_GUESS * verts - times))
+    assert guessed > 0.75 * np.median(times)  # the guess really was wrong ...
     fitted = mine["cost_overhead"] + mine["cost_coeff"] * verts
-    guessed = np.mean(np.abs(WRONG_GUESS * verts - times))
-    assert np.mean(np.abs(fitted - times)) < 0.5 * guessed, (mine["cost_overhead"], mine["cost_coeff"], times)
+    assert np.median(np.abs(fitted - times)) < 0.5 * guessed, (mine["cost_overhead"], mine["cost_coeff"], times)
     assert run.frames[-1].cost_coeff > 3 * WRONG_GUESS
 
 
@@ -149,5 +150,5 @@ def test_prediction_and_morphing_run_end_to_end_without_popping(server):
         assert np.all(jump <= 7.0 / tau * (b.t - a.t) + 1e-6), (a.t, shared[jump.argmax()], jump.max())
         steps += int((jump > 0).sum())
     assert steps > 0  # and the levels did change along the tour
-    sessions = httpx.get(server.http + "/sessions", timeout=10).json()
+    sessions = httpx.get(server.http + "/sessions", headers=server.admin_headers, timeout=10).json()
     assert all(s["late"] == 0 for s in sessions)
