@@ -496,6 +496,9 @@ def serve(
     announce(f"walkstream: serving {', '.join(sorted(scenes))} on http://{host}:{bound} (websocket /ws)")
     server = uvicorn.Server(
         uvicorn.Config(app, log_level=log_level, ws_max_size=limits.max_message,
-                       ws_ping_interval=limits.ping_interval, ws_ping_timeout=limits.ping_timeout)
+                       ws_ping_interval=limits.ping_interval, ws_ping_timeout=limits.ping_timeout,
+                       # Large frames are zstd'd by the codec already; deflate on top would only burn CPU
+                       # on every small frame of every session.
+                       ws_per_message_deflate=False)
     )
     server.run(sockets=[sock])

@@ -111,6 +111,8 @@ class SessionConfig:
     clock_wait : seconds regular selections wait for the first pong (a client that never answers pings
         gets them after that, timed by a guess)
     factors : which F&S benefit factors the selection applies, and their weights (None: all, defaults)
+    budget_quantile : the share of frames that should meet the target — the budget is divided by the cost model's
+        recent measured ÷ predicted ratio at this quantile (0: budget the mean frame, as F&S and Zach do)
     bandwidth : the link's first guess, bytes/s, until acks of large deltas measure it
     link_share : share of the measured bandwidth × τ one delta's new representations may take (the rest is
         headroom for morph intermediates, pings and estimation error); what is still in flight counts against it
@@ -135,6 +137,7 @@ class SessionConfig:
     factors: BenefitFactors | None = None
     cost_model: str = "online"
     link_share: float = 0.8
+    budget_quantile: float = 0.95
     bandwidth: float = 10.0e6
 
     def __post_init__(self) -> None:
@@ -507,7 +510,13 @@ class Session:
             t0, t1 = switch, switch + tau
         view, margin = self._interval(c_now, t0, t1)
         # The fitted model's fixed per-frame cost (clear, finish) is spent whatever is drawn.
-        budget = max(hello.target_frame_time - getattr(self.cost, "overhead", 0.0), 0.25 * hello.target_frame_time)
+        # And the frame at the budget quantile, not the mean one, meets the target: the model's recent held-out
+        # measured ÷ predicted ratio at that quantile shrinks what the selection may spend.
+        tail = self.cost.tail_ratio(self.config.budget_quantile) if (
+            self.config.budget_quantile > 0 and hasattr(self.cost, "tail_ratio")) else 1.0
+        self._tail = tail
+        budget = max(hello.target_frame_time / tail - getattr(self.cost, "overhead", 0.0),
+                     0.25 * hello.target_frame_time)
         # The only clock the selection sees: an anytime solver stops at select_limit with its best so far.
         began = time.perf_counter()
         limit = Limit(time.perf_counter, began + self.config.select_limit)
@@ -756,6 +765,7 @@ class Session:
             "cost_updates": self.cost.updates,
             "cost_model": getattr(self.cost, "chosen", "zach"),
             "cost_overhead": float(getattr(self.cost, "overhead", 0.0)),
+            "tail_ratio": getattr(self, "_tail", 1.0),
             "pixel_scale": self._pixel_scale,
             "last_frame_time": self.last_frame_time,
             "solver_stopped": self.last_stats.get("stopped", ""),

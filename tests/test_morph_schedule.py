@@ -216,3 +216,51 @@ def test_schedules_keep_resident_continuous_and_within_budget(case):
                 assert abs(level - prev[key]) <= (K - 1) / TAU * dt + 1e-9  # no jump
         assert drawn_cost <= budget + 1e-9
         prev = dict(zip(d.key.tolist(), d.level.tolist()))
+
+
+@st.composite
+def _forest_and_solutions(draw):
+    m = draw(st.integers(1, 40))
+    parent = np.array([draw(st.integers(-1, i - 1)) for i in range(m)], np.int64)
+    black = np.array(draw(st.lists(st.integers(0, m - 1), unique=True, max_size=m)), np.int64)
+    new = np.array(draw(st.lists(st.integers(0, m - 1), unique=True, max_size=m)), np.int64)
+    return parent, black, new
+
+
+@settings(max_examples=150, deadline=None)
+@given(_forest_and_solutions())
+def test_marking_equals_its_definition(case):
+    """Up-morph from the nearest black ancestor; down-morph when an ancestor of a black rep (grey), not black."""
+    parent, black, new = case
+
+    def ancestors(r):
+        out, a = [], parent[r]
+        while a >= 0:
+            out.append(int(a))
+            a = parent[a]
+        return out
+
+    blacks = set(black.tolist())
+    grey = {a for b in blacks for a in ancestors(b)}
+    kind, source = mark(parent, black, new)
+    for r, k, s in zip(new.tolist(), kind.tolist(), source.tolist()):
+        up = next((a for a in ancestors(r) if a in blacks), -1)
+        assert s == up
+        assert k == (-1 if r in grey and r not in blacks else 1 if up >= 0 else 0)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 30), st.floats(0, 5), st.floats(0, 5)), max_size=40),
+       st.lists(st.tuples(st.integers(0, 30), st.floats(0, 5), st.floats(0, 5)), max_size=40))
+def test_needed_union_keeps_the_widest_range_per_key(a, b):
+    def table(rows):
+        return (np.array([r[0] for r in rows], np.int64), np.array([r[1] for r in rows], float),
+                np.array([r[2] for r in rows], float))
+
+    key, lo, hi = MorphScheduler._union(table(a), table(b))
+    want = {}
+    for k, l, h in a + b:
+        w = want.get(k, (np.inf, -np.inf))
+        want[k] = (min(w[0], l), max(w[1], h))
+    assert key.tolist() == sorted(want)
+    assert [(x, y) for x, y in zip(lo.tolist(), hi.tolist())] == [want[k] for k in sorted(want)]

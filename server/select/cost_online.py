@@ -348,6 +348,7 @@ class OnlineCostModel:
         self.rungs = {name: _Rung(name, algorithms, c_vertex, forgetting, window) for name in MODELS}
         self.chosen = "vertex"
         self.frames = 0
+        self._ratios: deque[float] = deque(maxlen=100)  # measured ÷ predicted by the chosen model, held out
         self.recent = max(1, window // 3)
         self.hold = max(1, window // 12)
         self._pending, self._count = "vertex", 0
@@ -382,6 +383,9 @@ class OnlineCostModel:
             return False  # counts, not numerical dust (which would put a coefficient's scale at infinity)
         if cols[1].sum() + splats <= 0:
             return False
+        predicted = _frame(self.rungs[self.chosen].full(), z, r)
+        if predicted > 0:
+            self._ratios.append(time / predicted)  # the chosen model's held-out ratio, for ``tail_ratio``
         for rung in self.rungs.values():
             rung.errors.append(abs(_frame(rung.full(), z, r) - time) / time)  # held out: before it learns
             rung.observe(time, z)
@@ -390,6 +394,16 @@ class OnlineCostModel:
         self.frames += 1
         self._select()
         return True
+
+    def tail_ratio(self, q: float = 0.95, least: int = 20, cap: float = 1.5) -> float:
+        """The q-quantile of measured ÷ predicted frame time over recent frames (held out), at least 1.
+
+        A budget divided by it makes the q-th percentile frame, not the average one, meet the target:
+        the machine's own noise (a shared CPU, a driver's stalls) is then part of what is budgeted.
+        1 until ``least`` frames are known; at most ``cap`` so one stalled stretch cannot starve the picture."""
+        if len(self._ratios) < least:
+            return 1.0
+        return float(np.clip(np.quantile(np.fromiter(self._ratios, float), q), 1.0, cap))
 
     def update(self, time: float, vertices: int) -> bool:
         """``CostModel.update``: only the time and the vertices are known (flat, no draws, no pixels)."""

@@ -476,18 +476,23 @@ def threshold(hull: Hull, steps: np.ndarray) -> float | None:
 
 _mode: bool | None = None  # None: kernels once warm; True: always (waits for the compile); False: never
 _kern = None  # the _kernels module once warmed up
+_view = None  # the selection's projection and benefit kernels (``select._view_kernels``) once warmed up
 _warm_error: BaseException | None = None
 _warm_done = threading.Event()
 _warm_thread: threading.Thread | None = None
 
 
 def _warm() -> None:
-    global _kern, _warm_error
+    global _kern, _view, _warm_error
     try:
         from . import _kernels
 
         _kernels.warm_up()
         _kern = _kernels
+        from .. import _view_kernels
+
+        _view_kernels.warm_up()
+        _view = _view_kernels
     except Exception as e:  # numba missing or broken: the numpy reference stays in charge
         _warm_error = e
     finally:
@@ -534,6 +539,11 @@ def _kernels_now():
     if _mode is True and _kern is None:
         warm_up()
     return _kern
+
+
+def view_kernels_now():
+    """The selection's compiled projection and benefit kernels if they should be used now (as ``_kernels_now``)."""
+    return _view if _kernels_now() is not None else None
 
 
 _start_warm_up()

@@ -1,0 +1,334 @@
+"""Compiled per-box and per-tuple loops of one selection (numba): culling, projection, benefit.
+
+A selection looks at every box from several cameras (an ``Interval``: the
+predicted samples and the conservative camera). In numpy each quantity —
+frustum test, eight projected corners for the screen size, the projected
+centre for Focus and Motion, then every F&S factor over (n, K) — is its own
+pass with its own temporaries, and at a few thousand boxes the passes cost
+more than the arithmetic. These kernels do it in one pass per box, and
+compute exactly what ``camera`` and ``benefit`` compute (same formulas, same
+order of operations; they stay the reference the tests compare with).
+
+Pure functions of arrays (no clock, no I/O). Compiled (or loaded from numba's
+cache) by ``warm_up``, which the solvers' warm-up thread calls after their own
+kernels (``solvers.greedy``); the selection uses them once that is done and the
+numpy path until then.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numba
+import numpy as np
+
+from .solvers._kernels import _jit
+
+#: Must match ``camera.SPEED_LIMIT_NDC``, ``benefit.BASE_ERROR`` and ``benefit.MIN_FACTOR``.
+from .camera import SPEED_LIMIT_NDC  # noqa: E402
+from .benefit import BASE_ERROR, MIN_FACTOR  # noqa: E402
+
+ACCURACY_OFF, ACCURACY_FS, ACCURACY_ZACH = 0, 1, 2
+
+
+@_jit()
+def cull_any(lo, hi, planes, visible):
+    """visible[i] = box i passes every plane of at least one camera; planes (C, 6, 4) (``camera.cull_boxes``)."""
+    n, c = lo.shape[0], planes.shape[0]
+    for i in range(n):
+        visible[i] = _inside_any(lo, hi, i, planes, c)
+
+
+@_jit(inline="always")
+def _inside(lo, hi, i, planes, j):
+    for p in range(6):
+        a, b, c, d = planes[j, p, 0], planes[j, p, 1], planes[j, p, 2], planes[j, p, 3]
+        px = np.float64(hi[i, 0]) if a >= 0 else np.float64(lo[i, 0])
+        py = np.float64(hi[i, 1]) if b >= 0 else np.float64(lo[i, 1])
+        pz = np.float64(hi[i, 2]) if c >= 0 else np.float64(lo[i, 2])
+        if not (a * px + b * py + c * pz + d >= 0):
+            return False
+    return True
+
+
+@_jit(inline="always")
+def _box_inside(lx, ly, lz, hx, hy, hz, pl):
+    """``_inside`` for one box already in registers against one camera's (6, 4) planes."""
+    for p in range(6):
+        a, b, c, d = pl[p, 0], pl[p, 1], pl[p, 2], pl[p, 3]
+        px = hx if a >= 0 else lx
+        py = hy if b >= 0 else ly
+        pz = hz if c >= 0 else lz
+        if not (a * px + b * py + c * pz + d >= 0):
+            return False
+    return True
+
+
+@_jit(inline="always")
+def _inside_any(lo, hi, i, planes, c):
+    for j in range(c):
+        if _inside(lo, hi, i, planes, j):
+            return True
+    return False
+
+
+@_jit(inline="always")
+def _centre(cx, cy, cz, m, limit):
+    """NDC x, y of a point under clip matrix m, clamped to ±limit; behind the eye: on the clamp border."""
+    x = cx * m[0, 0] + cy * m[0, 1] + cz * m[0, 2] + m[0, 3]
+    y = cx * m[1, 0] + cy * m[1, 1] + cz * m[1, 2] + m[1, 3]
+    w = cx * m[3, 0] + cy * m[3, 1] + cz * m[3, 2] + m[3, 3]
+    if w > 1e-9:
+        return min(max(x / w, -limit), limit), min(max(y / w, -limit), limit)
+    reach = max(abs(x), abs(y))
+    if reach > 1e-12:
+        s = max(reach, 1e-300)
+        return x / s * limit, y / s * limit
+    return limit, limit
+
+
+@_jit()
+def project(lo, hi, rows, clips, planes, widths, heights, cull, before, has_before, size, offset, moved):
+    """Per camera j and row i of ``rows``: screen size, centre offset and centre travel since ``before``.
+
+    lo, hi : (N, 3) boxes; rows : (v,) int64 indices into them
+    clips, planes : (C, 4, 4) world → clip, (C, 6, 4) frustum planes; widths, heights : (C,) float64 pixels
+    cull : zero the size of boxes outside camera j's frustum (``camera.cull_boxes``)
+    before : (4, 4) the previous view's clip matrix, used iff ``has_before``
+    size, offset, moved : (C, v) outputs — ``camera.screen_size`` (0 when culled), ``camera.centre_offset``,
+        and the pixel distance ``screen_speed`` divides by dt (0 without ``before``)
+    Cameras outermost, so that each camera's matrix stays in registers over the boxes.
+    """
+    nc, v = clips.shape[0], rows.shape[0]
+    lim = SPEED_LIMIT_NDC
+    # Box centres, extents and (with ``before``) where the centres were on screen, in NDC.
+    cen = np.empty((v, 3))
+    ext = np.empty((v, 3))
+    was = np.zeros((v, 2))
+    for q in range(v):
+        i = rows[q]
+        for a in range(3):
+            l, h = np.float64(lo[i, a]), np.float64(hi[i, a])
+            cen[q, a] = (l + h) * 0.5
+            ext[q, a] = h - l
+        if has_before:
+            was[q, 0], was[q, 1] = _centre(cen[q, 0], cen[q, 1], cen[q, 2], before, lim)
+    for j in range(nc):
+        m = clips[j]
+        m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]
+        m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
+        m30, m31, m32, m33 = m[3, 0], m[3, 1], m[3, 2], m[3, 3]
+        wd, ht = widths[j], heights[j]
+        hw, hh = wd * 0.5, ht * 0.5
+        diag = math.sqrt(hw * hw + hh * hh)
+        full = float(wd * ht)
+        pl = planes[j].copy()
+        for q in range(v):
+            i = rows[q]
+            lx, ly, lz = np.float64(lo[i, 0]), np.float64(lo[i, 1]), np.float64(lo[i, 2])
+            # Size: the eight corners' clip coordinates, lo corner plus the edges along the set bits.
+            if cull and not _box_inside(lx, ly, lz, np.float64(hi[i, 0]), np.float64(hi[i, 1]),
+                                        np.float64(hi[i, 2]), pl):
+                size[j, q] = 0.0
+            else:
+                ex, ey, ez = ext[q, 0], ext[q, 1], ext[q, 2]
+                b0 = lx * m00 + ly * m01 + lz * m02 + m03
+                b1 = lx * m10 + ly * m11 + lz * m12 + m13
+                b3 = lx * m30 + ly * m31 + lz * m32 + m33
+                xa, ya, wa = ex * m00, ex * m10, ex * m30  # the edge along x, in clip x, y, w
+                xb, yb, wb = ey * m01, ey * m11, ey * m31
+                xc, yc, wc = ez * m02, ez * m12, ez * m32
+                x_lo = y_lo = 1.0
+                x_hi = y_hi = -1.0
+                behind = False
+                for k in range(8):
+                    sx, sy, sw = 0.0, 0.0, 0.0
+                    if k & 4:
+                        sx += xa
+                        sy += ya
+                        sw += wa
+                    if k & 2:
+                        sx += xb
+                        sy += yb
+                        sw += wb
+                    if k & 1:
+                        sx += xc
+                        sy += yc
+                        sw += wc
+                    w = b3 + sw
+                    if not (w > 1e-6):
+                        behind = True
+                        break
+                    x = min(max((b0 + sx) / w, -1.0), 1.0)
+                    y = min(max((b1 + sy) / w, -1.0), 1.0)
+                    x_lo, x_hi = min(x_lo, x), max(x_hi, x)
+                    y_lo, y_hi = min(y_lo, y), max(y_hi, y)
+                size[j, q] = full if behind else (x_hi - x_lo) * (y_hi - y_lo) * 0.25 * wd * ht
+            # Focus: the centre's distance from the screen centre over the half diagonal.
+            cx, cy, cz = cen[q, 0], cen[q, 1], cen[q, 2]
+            nx, ny = _centre(cx, cy, cz, m, 1.0)
+            dx, dy = (nx + 1.0) * 0.5 * wd - hw, (ny + 1.0) * 0.5 * ht - hh
+            offset[j, q] = min(max(math.sqrt(dx * dx + dy * dy) / diag, 0.0), 1.0)
+            # Motion: how far the centre (clamped at ±SPEED_LIMIT_NDC) moved on screen since ``before``.
+            if has_before:
+                ax, ay = _centre(cx, cy, cz, m, lim)
+                dx = (ax + 1.0) * 0.5 * wd - (was[q, 0] + 1.0) * 0.5 * wd
+                dy = (ay + 1.0) * 0.5 * ht - (was[q, 1] + 1.0) * 0.5 * ht
+                moved[j, q] = math.sqrt(dx * dx + dy * dy)
+            else:
+                moved[j, q] = 0.0
+
+
+@_jit(inline="always")
+def _pow(x, m):
+    if m == 1.0:
+        return x
+    if m == 2.0:
+        return x * x
+    return x**m
+
+
+@_jit()
+def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per_vertex, exponent, n_alg,
+                accuracy_mode, use_size, importance, focus_strength, motion_strength, frame_time, previous,
+                level_weight, algorithm_weight, out):
+    """out[i, k] = Σ_j weight[j] · Benefit_j(i, k) over valid options, 0 elsewhere (``benefit.benefit_matrix``).
+
+    size, offset, speed : (C, v) per camera (speed in px/s); an empty ``offset`` (shape (0, 0)) switches
+        Focus off, an empty ``importance`` / ``previous`` Importance / Hysteresis
+    moving : (C,) bool — Motion on for camera j (its speed was measured)
+    faces, vertices : (v, K); valid : (v, K) bool
+    per_vertex, exponent : (R,) F&S Samples (vertices, not faces) and m per algorithm; option k uses k % R
+    accuracy_mode : ACCURACY_OFF, ACCURACY_FS or ACCURACY_ZACH
+    focus_strength, motion_strength : the factors' slopes (used only when their input is given)
+    The factors multiply in ``benefit_matrix``'s order, so the sums are the same to the last bit; what
+    does not depend on the camera (hysteresis weights, accuracy below the pixel cap) is computed once per row,
+    and a camera in which the row covers no pixels adds exactly nothing (with Size on) and is skipped.
+    """
+    nc = size.shape[0]
+    v, kk = faces.shape
+    use_focus = offset.shape[0] > 0
+    use_importance = importance.shape[0] > 0
+    use_hysteresis = previous.shape[0] > 0
+    b = np.empty(kk)
+    samples = np.empty(kk)
+    acc = np.empty(kk)
+    capped = np.empty(n_alg)
+    keep = np.ones(kk)
+    for i in range(v):
+        for k in range(kk):
+            out[i, k] = 0.0
+        orig = 0.0
+        if accuracy_mode == ACCURACY_ZACH:
+            orig = np.float64(faces[i, 0])
+            for k in range(1, kk):
+                orig = max(orig, np.float64(faces[i, k]))
+            orig = max(orig, 1.0)
+        elif accuracy_mode == ACCURACY_FS:
+            for k in range(kk):
+                r = k % n_alg
+                samples[k] = np.float64(vertices[i, k]) if per_vertex[r] else np.float64(faces[i, k])
+                acc[k] = 1.0 - BASE_ERROR / _pow(max(samples[k], 1.0), exponent[r])
+        prev = previous[i] if use_hysteresis else -1
+        hysteresis = prev >= 0 and prev < kk
+        if hysteresis:
+            for k in range(kk):
+                d_level = abs(k // n_alg - prev // n_alg)
+                d_alg = abs(k % n_alg - prev % n_alg)
+                keep[k] = 1.0 / (1.0 + level_weight * d_level + algorithm_weight * d_alg)
+        for j in range(nc):
+            s = size[j, i]
+            if use_size and s == 0.0:
+                continue
+            cap = max(s, 1.0)
+            if accuracy_mode == ACCURACY_FS:  # the accuracy of an option whose Samples exceed the pixels
+                for r in range(n_alg):
+                    capped[r] = 1.0 - BASE_ERROR / _pow(cap, exponent[r])
+            imp = importance[i] if use_importance else 1.0
+            fo = max(1.0 - focus_strength * min(max(offset[j, i], 0.0), 1.0), MIN_FACTOR) if use_focus else 1.0
+            mo = 1.0
+            if moving[j]:
+                polygon_px = s / max(np.float64(faces[i, 0]), 1.0)
+                edge = math.sqrt(max(polygon_px, 1.0))
+                mo = 1.0 / (1.0 + motion_strength * max(speed[j, i], 0.0) * frame_time / edge)
+            for k in range(kk):
+                # benefit_matrix's order: Size, Accuracy, Importance, Focus, Motion.
+                x = 1.0
+                if use_size:
+                    x *= s
+                if accuracy_mode == ACCURACY_FS:
+                    x *= acc[k] if samples[k] <= cap else capped[k % n_alg]  # Samples never over the pixels
+                elif accuracy_mode == ACCURACY_ZACH:
+                    f = max(np.float64(faces[i, k]), 1.0)
+                    x *= max(1.0, s / orig) / max(1.0, s / f)
+                if use_importance:
+                    x *= imp
+                if use_focus:
+                    x *= fo
+                if moving[j]:
+                    x *= mo
+                b[k] = x
+            if hysteresis:
+                at_prev = b[prev]
+                for k in range(kk):
+                    b[k] = b[k] - (1.0 - keep[k]) * abs(b[k] - at_prev)
+            wj = weight[j]
+            for k in range(kk):
+                out[i, k] += wj * b[k]
+        for k in range(kk):
+            if not valid[i, k]:
+                out[i, k] = 0.0
+
+
+_warm_lock = threading.Lock()
+_warm_seconds: float | None = None
+
+
+def warm_up() -> float:
+    """Compile (or load from the cache) every kernel here; seconds taken. Idempotent and thread-safe."""
+    global _warm_seconds
+    import time
+
+    with _warm_lock:
+        if _warm_seconds is None:
+            t0 = time.perf_counter()
+            try:
+                compile_all()
+            except OSError:  # the cache numba chose cannot be read or written: compile in memory
+                from numba.core.caching import NullCache
+
+                for fn in list(globals().values()):
+                    if isinstance(fn, numba.core.registry.CPUDispatcher):
+                        fn._cache = NullCache()
+                compile_all()
+            _warm_seconds = time.perf_counter() - t0
+        return _warm_seconds
+
+
+def compile_all() -> None:
+    """Call every kernel once with the argument types the selection passes."""
+    clips = np.tile(np.eye(4), (2, 1, 1))
+    planes = np.zeros((2, 6, 4))
+    rows = np.arange(2, dtype=np.int64)
+    wh = np.ones(2)
+    size, offset, moved = np.empty((2, 2)), np.empty((2, 2)), np.empty((2, 2))
+    for box_dtype in (np.float32, np.float64):  # scene indexes hold float32 boxes, hand-made views float64
+        lo, hi = np.zeros((2, 3), box_dtype), np.ones((2, 3), box_dtype)
+        cull_any(lo, hi, planes, np.empty(2, bool))
+        frozen = clips[0].copy()
+        frozen.flags.writeable = False  # ``View.matrix()`` is read-only: numba types it apart
+        for flag in (True, False):
+            for before in (clips[0], frozen):
+                project(lo, hi, rows, clips, planes, wh, wh, flag, before, flag, size, offset, moved)
+    out = np.empty((2, 3))
+    empty2, empty1 = np.zeros((0, 0)), np.zeros(0)
+    valid = np.ones((2, 3), bool)
+    pv, ex = np.zeros(1, np.bool_), np.ones(1)
+    for f_dtype in (np.int64, np.int32):
+        f = np.ones((2, 3), f_dtype)
+        for moving in (np.ones(2, bool), np.zeros(2, bool)):
+            benefit_sum(size, offset, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_FS, True, wh, 0.3, 0.5,
+                        0.05, rows, 0.1, 0.1, out)
+            benefit_sum(size, empty2, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_FS, True, empty1, 0.3,
+                        0.5, 0.05, np.zeros(0, np.int64), 0.1, 0.1, out)
