@@ -484,6 +484,12 @@ def serve(
     if not isinstance(state, MemoryStateStore):
         check_state_url(state_url)
     scenes = load_scenes(paths)
+    # Selections switch from the numpy reference to the compiled kernels once those are ready; doing that
+    # mid-session could flip a tie and morph an object for nothing, so sessions start only after it (from
+    # numba's cache: a second or two; the bootstrap fills the cache).
+    from .select.solvers import greedy
+
+    greedy.warm_up(timeout=300)
     sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     if limits.send_buffer is not None:  # accepted connections inherit it (and lose autotuning)

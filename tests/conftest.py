@@ -16,6 +16,15 @@ if os.environ.get("CI"):
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _compiled_kernels_ready():
+    """In-process sessions use the compiled selection kernels from their first selection, as a server does
+    (``server.app.serve`` waits for them): a switch mid-session from the numpy path could flip a tie."""
+    from server.select.solvers import greedy
+
+    greedy.warm_up(timeout=600)
+
+
 @pytest.fixture(scope="session")
 def demo_store(tmp_path_factory) -> Path:
     """A small demo scene (same generator as ``walkstream build demo``), built once."""
