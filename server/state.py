@@ -405,6 +405,8 @@ def load_cost(cost: Any, state: Any) -> None:
 
 def predictor_state(p: Any) -> dict:
     """A ``Predictor``'s history (recent poses and their fit) and the motion it has seen."""
+    if hasattr(p, "_fit"):
+        p._fit()  # the fit is lazy: bring it up to the poses held
     return save_attrs(p, _PREDICTOR)
 
 

@@ -37,6 +37,8 @@ SHRINK = 4.0
 _SCALE_FLOOR = np.array([1e-4, 1e-6, 1e-6])
 #: A jump shorter than this is never a teleport (no speed limit given): jitter at tiny time steps.
 TELEPORT_SLACK = 1.0
+#: Seconds of camera samples between fits while no prediction asks for one (θ and ω follow the fits).
+REFIT_EVERY = 0.25
 #: A view-direction change smaller than this is never a teleport, however fast.
 TELEPORT_MIN_TURN_DEG = 60.0
 _EPS = 1e-12
@@ -189,6 +191,8 @@ class Predictor:
         self._a = self._b = np.zeros(9)
         self._speed_seen = 0.0
         self._turn_seen = 0.0
+        self._stale = False  # samples arrived since the last fit: refit when a prediction is asked for
+        self._fit_t = -math.inf  # the newest sample's time at the last fit
 
     # ------------------------------------------------------------------ state
 
@@ -202,6 +206,7 @@ class Predictor:
         """θ, m/s: the speed limit if given, else the fastest fitted speed seen (at least ``min_speed``)."""
         if self.limits.speed is not None:
             return float(self.limits.speed)
+        self._fit()
         return max(self.min_speed, self._speed_seen)
 
     @property
@@ -209,6 +214,7 @@ class Predictor:
         """ω, rad/s: the turn limit if given, else the fastest fitted turn of forward seen (at least ``min_turn_deg``)."""
         if self.limits.turn is not None:
             return float(self.limits.turn)
+        self._fit()
         return max(self.min_turn, self._turn_seen)
 
     # ------------------------------------------------------------------ input
@@ -248,13 +254,25 @@ class Predictor:
         keep = self._t >= self._t[-1] - self.window
         keep[-2:] = True
         self._t, self._x = self._t[keep], self._x[keep]
-        self._refit()
+        # The fit costs ~0.7 ms; poses come at 10–60 Hz and predictions are asked for once per τ: fit lazily,
+        # but at least every REFIT_EVERY seconds of samples so the fastest motion seen (θ, ω) is still tracked.
+        self._stale = True
+        if t >= self._fit_t + REFIT_EVERY:
+            self._fit()
         return False
+
+    def _fit(self) -> None:
+        if self._stale:
+            self._stale = False
+            self._fit_t = float(self._t[-1])
+            self._refit()
 
     def _start(self, t: float, x: np.ndarray) -> None:
         self._t, self._x = np.array([t]), x[None, :].copy()
         self._floor = t
         self._a, self._b = x.copy(), np.zeros(9)
+        self._stale = False
+        self._fit_t = t
 
     def _reset(self, t: float, x: np.ndarray) -> bool:
         self._start(t, x)
@@ -303,6 +321,7 @@ class Predictor:
         if not math.isfinite(t):
             raise ValueError(f"t must be finite, got {t!r}")
         h = t - float(self._t[-1])
+        self._fit()
         a, b = self._a, self._b
         velocity = b[:3]
         speed = float(np.linalg.norm(velocity))
