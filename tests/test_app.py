@@ -175,7 +175,7 @@ def test_a_flood_is_answered_rate_limited_once_and_the_other_session_goes_on(fre
     flood.expect(Delta)
     assert [e.code for e in flood.errors] == ["rate_limited"]
     dropped = _metrics(fresh)[("walkstream_refused_total", (("reason", "rate"),))] - before
-    assert 40 <= dropped <= 52
+    assert 40 <= dropped <= 55  # the burst less what the hello, pose and pongs before it took
     # The calm session never noticed.
     n = len(calm.deltas)
     calm.expect(Delta)
