@@ -49,7 +49,7 @@ _GONE = object()
 _WAKE = object()
 
 #: Websocket close codes: normal, policy violation (flooding), try again later (busy).
-CLOSE_NORMAL, CLOSE_POLICY, CLOSE_BUSY = 1000, 1008, 1013
+CLOSE_NORMAL, CLOSE_POLICY, CLOSE_RESTART, CLOSE_BUSY = 1000, 1008, 1012, 1013
 _SOCKET_GONE = (WebSocketDisconnect, RuntimeError, OSError)
 
 
@@ -137,7 +137,8 @@ def create_app(
             yield
         finally:
             for conn in list(conns.values()):
-                conn.request_close("closed", CLOSE_NORMAL, "the server is shutting down")
+                # Not "closed" (an administrator's end of the session): a client redials and resumes elsewhere.
+                conn.request_close("busy", CLOSE_RESTART, "the server is shutting down; reconnect to resume")
             pool.shutdown(wait=True, cancel_futures=True)
             try:
                 await store.close()
