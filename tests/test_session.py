@@ -89,6 +89,18 @@ def test_frame_reports_drive_the_cost_model(scenes):
     assert s.stats["frames"] == 30
 
 
+def test_a_60_hz_client_is_folded_into_the_cost_model_at_observe_hz(scenes):
+    s = _open(scenes, config=SessionConfig(observe_hz=20.0))
+    s.receive(_camera(scenes), now=0.0)
+    for i in range(120):  # two seconds at 60 Hz, the last ten frames far slower: the sample must still see them
+        slow = i >= 110
+        s.receive(encode(FrameReport(frame=i, t=i / 60, time=0.5 if slow else 0.1, triangles=200_000,
+                                     vertices=100_000, draws=5)), i / 60)
+    assert s.stats["frames"] == 120  # every report is counted ...
+    assert 38 <= s.cost.updates <= 42  # ... about 20 a second are fitted, evenly in time
+    assert max(s.cost._ratios) > 3  # the late slow frames were among them (measured ≈ 5 × predicted)
+
+
 def test_malformed_frames_get_error_frames_and_change_nothing(scenes):
     s = _open(scenes)
     s.receive(_camera(scenes), now=0.0)
