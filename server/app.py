@@ -230,7 +230,8 @@ def create_app(
         loop = asyncio.get_running_loop()
         try:
             blob = await loop.run_in_executor(pool, session.snapshot)
-            await store.save(session.id, session.token, blob, limits.state_ttl)
+            if not await store.save(session.id, session.token, blob, limits.state_ttl, fence=session.fence):
+                metrics.state_failures.labels("fenced").inc()  # resumed elsewhere since: that state wins
         except Exception as exc:
             metrics.state_failures.labels("save").inc()
             log.warning("saving session %s failed: %s", session.id, exc)
@@ -257,7 +258,10 @@ def create_app(
                 log.warning("session %s: the old connection did not end in time; resuming from the last save",
                             ask.session)
             found = await store.load(ask.session) or found
-        session = Session(scenes, ask.session, config, token=found[0])
+        # A new token for the new owner (the welcome carries it); saves are fenced by the one resumed from, so
+        # the old owner's late saves — under the old token — no longer overwrite this session's state.
+        session = Session(scenes, ask.session, config)
+        session.fence = found[0]
         loop = asyncio.get_running_loop()
         try:
             await loop.run_in_executor(pool, session.restore, found[1])
@@ -402,7 +406,9 @@ def create_app(
                                 metrics.selection_cpu_seconds.observe(cpu)
                                 conn.last_save = time.monotonic()
                                 try:
-                                    await store.save(session.id, session.token, blob, limits.state_ttl)
+                                    if not await store.save(session.id, session.token, blob, limits.state_ttl,
+                                                            fence=session.fence):
+                                        metrics.state_failures.labels("fenced").inc()
                                 except Exception as exc:
                                     metrics.state_failures.labels("save").inc()
                                     log.warning("saving session %s failed: %s", session.id, exc)

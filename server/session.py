@@ -189,6 +189,7 @@ class Session:
         self._next_ping: float | None = None
         self._ping_id = 0
         self._pings: dict[int, float] = {}  # id → stamp of each ping not yet answered
+        self.fence: str | None = None  # the token this session was resumed from (``StateStore.save``)
         self._observe_due = -np.inf  # client time from which the next frame report is folded into the cost model
         self._select_time = self.config.select_limit  # running estimate of a selection's wall time
         self._delta_bytes = 0.0  # running estimate of a (non-reset) delta's size
@@ -952,10 +953,14 @@ class Session:
         if r is None:
             return False
         resume = hello.resume
+        # The token presented is the one the state was saved under: the fence, when the app rotated it.
+        expected = self.fence or self.token
         if (resume is not None and resume.session == self.id and hello.scene == r["scene"]
-                and secrets.compare_digest(resume.token, self.token)):
+                and secrets.compare_digest(resume.token, expected)):
             return True
+        fence = self.fence
         Session.__init__(self, self.scenes, self.id, self.config, token=self.token)  # a fresh start after all
+        self.fence = fence  # it still replaces the state it was loaded from
         return False
 
     def _adopt(self, held: np.ndarray | None, resumed: bool) -> None:

@@ -70,7 +70,12 @@ class StateStoreError(RuntimeError):
 class StateStore(Protocol):
     """Where session snapshots live between connections; async because the FastAPI handler awaits it."""
 
-    async def save(self, session_id: str, token: str, blob: bytes, ttl: float) -> None: ...
+    async def save(self, session_id: str, token: str, blob: bytes, ttl: float, fence: str | None = None) -> bool:
+        """Store the snapshot under ``token`` unless the stored one is another's: only when no state is stored,
+        or it is stored under ``token`` or ``fence`` (the token this owner resumed from). A resume rotates the
+        token, so a replica that has not yet noticed its dead connection cannot overwrite the new owner's
+        state. Returns whether it was stored."""
+        ...
 
     async def load(self, session_id: str) -> tuple[str, bytes] | None: ...
 
@@ -104,13 +109,17 @@ class MemoryStateStore(StateStore):
         now = self._clock()
         return sum(1 for _, _, at in self._items.values() if at > now)
 
-    async def save(self, session_id: str, token: str, blob: bytes, ttl: float) -> None:
+    async def save(self, session_id: str, token: str, blob: bytes, ttl: float, fence: str | None = None) -> bool:
         now = self._clock()
+        held = self._items.get(session_id)
+        if held is not None and held[2] > now and held[0] not in (token, fence):
+            return False  # another owner took the session over
         self._items[session_id] = (str(token), bytes(blob), now + _check_ttl(ttl))
         if now >= self._next_sweep:
             self._next_sweep = now + self._sweep
             for key in [k for k, (_, _, at) in self._items.items() if at <= now]:
                 del self._items[key]
+        return True
 
     async def load(self, session_id: str) -> tuple[str, bytes] | None:
         item = self._items.get(session_id)
@@ -176,10 +185,23 @@ class RedisStateStore(StateStore):
         """Check that Redis answers (a server calls it at start, to fail early and clearly)."""
         await self._call("ping", self._redis.ping())
 
-    async def save(self, session_id: str, token: str, blob: bytes, ttl: float) -> None:
+    #: SET … PX only if no token is stored or it is the token or the fence; the token also in a key of its own
+    #: (Redis's cmsgpack cannot read msgpack's bin type), both written by one script, so atomically.
+    _FENCED_SET = """
+local cur = redis.call('GET', KEYS[2])
+if cur and cur ~= ARGV[2] and cur ~= ARGV[3] then return 0 end
+redis.call('SET', KEYS[1], ARGV[1], 'PX', ARGV[4])
+redis.call('SET', KEYS[2], ARGV[2], 'PX', ARGV[4])
+return 1
+"""
+
+    async def save(self, session_id: str, token: str, blob: bytes, ttl: float, fence: str | None = None) -> bool:
         ms = max(1, int(round(_check_ttl(ttl) * 1000)))
         value = msgpack.packb([str(token), bytes(blob)], use_bin_type=True)
-        await self._call(f"save session {session_id}", self._redis.set(self._key(session_id), value, px=ms))
+        key = self._key(session_id)
+        done = await self._call(f"save session {session_id}", self._redis.eval(
+            self._FENCED_SET, 2, key, key + ":token", value, str(token), str(fence or token), ms))
+        return bool(done)
 
     async def load(self, session_id: str) -> tuple[str, bytes] | None:
         value = await self._call(f"load session {session_id}", self._redis.get(self._key(session_id)))
@@ -194,7 +216,8 @@ class RedisStateStore(StateStore):
         return token, blob
 
     async def delete(self, session_id: str) -> None:
-        await self._call(f"delete session {session_id}", self._redis.delete(self._key(session_id)))
+        key = self._key(session_id)
+        await self._call(f"delete session {session_id}", self._redis.delete(key, key + ":token"))
 
     async def close(self) -> None:
         await self._redis.aclose()

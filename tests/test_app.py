@@ -301,7 +301,8 @@ def test_a_dropped_connection_resumes_without_geometry_sent_again(fresh, demo_st
     first.hang_up()
 
     again = Peer(fresh.url, resume=Resume(session=sid, token=token), held=pack_held(np.array(held)))
-    assert again.welcome.resumed is True and again.welcome.session == sid and again.welcome.token == token
+    # Resumed, under a new token: the old one no longer resumes (a stale owner's saves are fenced off).
+    assert again.welcome.resumed is True and again.welcome.session == sid and again.welcome.token != token
     assert again.welcome.held == len(held)
     again.camera(start)
     for _ in range(3):

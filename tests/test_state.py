@@ -436,3 +436,33 @@ def test_unreachable_redis_is_a_clear_error():
     asyncio.run(go())
     with pytest.raises(ValueError, match="unknown state store"):
         open_state_store("mysql://db")
+
+
+@pytest.mark.parametrize("kind", ["memory", "redis"])
+def test_a_resumed_owner_fences_off_the_old_owners_late_saves(kind, request):
+    """A resume rotates the token and saves under the new one, fenced by the old: the old replica, which has
+    not yet noticed its dead connection, saves under the old token later — and must not overwrite."""
+
+    async def go():
+        store = MemoryStateStore() if kind == "memory" else RedisStateStore(request.getfixturevalue("redis_url"),
+                                                                            prefix="fence:")
+        try:
+            assert await store.save("s", "old-token-0123456789", b"v1", 60.0)  # the first owner
+            assert await store.save("s", "old-token-0123456789", b"v2", 60.0)  # ... again, its own token
+            # The new owner resumed with the old token and saves under its new one, fenced by the old.
+            assert await store.save("s", "new-token-0123456789", b"v3", 60.0, fence="old-token-0123456789")
+            assert await store.load("s") == ("new-token-0123456789", b"v3")
+            # The old owner's late save (on noticing its disconnect) is refused and changes nothing.
+            assert not await store.save("s", "old-token-0123456789", b"stale", 60.0)
+            assert await store.load("s") == ("new-token-0123456789", b"v3")
+            # A stranger's token never writes either; the owner's own saves go on.
+            assert not await store.save("s", "someone-else-0123456", b"x", 60.0, fence="also-wrong-012345")
+            assert await store.save("s", "new-token-0123456789", b"v4", 60.0)
+            assert await store.load("s") == ("new-token-0123456789", b"v4")
+            await store.delete("s")
+            assert await store.load("s") is None
+            assert await store.save("s", "anyone-after-delete-1", b"v5", 60.0)  # nothing stored: anyone may
+        finally:
+            await store.close()
+
+    asyncio.run(go())
