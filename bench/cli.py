@@ -242,6 +242,20 @@ def bench_predict(
         print(json.dumps(out))
 
 
+def _cached_auditorium(quiet: bool) -> Path:
+    """The auditorium store the benchmarks share, under ``DEFAULT_CACHE``; built (progress bar) if missing."""
+    from server.scene.catalog import build_named
+    from server.scene.store import SCHEMA_VERSION
+
+    store = DEFAULT_CACHE / f"auditorium-s0-v{SCHEMA_VERSION}.db"
+    if not store.exists():
+        store.parent.mkdir(parents=True, exist_ok=True)
+        bar, tick = _progress_bar("building auditorium", quiet)
+        with bar:
+            build_named("auditorium", store, seed=0, progress=tick)
+    return store
+
+
 @bench_app.command("render")
 def bench_render(
     store: Optional[Path] = typer.Option(None, help="the store whose tour measures the cost model "
@@ -260,15 +274,7 @@ def bench_render(
     if store is not None and not store.exists():
         raise typer.BadParameter(f"no such store: {store}", param_hint="--store")
     if store is None and not no_tour:
-        from server.scene.catalog import build_named
-        from server.scene.store import SCHEMA_VERSION
-
-        store = DEFAULT_CACHE / f"auditorium-s0-v{SCHEMA_VERSION}.db"
-        if not store.exists():
-            store.parent.mkdir(parents=True, exist_ok=True)
-            bar, tick = _progress_bar("building auditorium", as_json)
-            with bar:
-                build_named("auditorium", store, seed=0, progress=tick)
+        store = _cached_auditorium(as_json)
     bar, tick = _progress_bar("bench render", quiet=as_json)
     with bar:
         result = run_render(None if no_tour else store, duration=duration, quick=quick, progress=tick)
@@ -291,16 +297,8 @@ def bench_encoding(
 
     if not stores:
         from bench.correspondence import cached_store
-        from server.scene.catalog import build_named
-        from server.scene.store import SCHEMA_VERSION
 
-        auditorium = DEFAULT_CACHE / f"auditorium-s0-v{SCHEMA_VERSION}.db"
-        if not auditorium.exists():
-            auditorium.parent.mkdir(parents=True, exist_ok=True)
-            bar, tick = _progress_bar("building auditorium", as_json)
-            with bar:
-                build_named("auditorium", auditorium, seed=0, progress=tick)
-        stores = [cached_store(quiet=as_json), auditorium]
+        stores = [cached_store(quiet=as_json), _cached_auditorium(as_json)]
     for p in stores:
         if not p.exists():
             raise typer.BadParameter(f"no such store: {p}", param_hint="--store")

@@ -611,7 +611,8 @@ class Session:
     def _byte_budget(self, now: float) -> float:
         """Bytes this delta's new representations may take: bandwidth × τ × link_share, less what is in flight."""
         link = self.delivery.bandwidth * self.config.tau * self.config.link_share
-        left = max(link - self.delivery.in_flight(now, horizon=max(4 * self.config.tau, 1.0)), 0.0)
+        self._in_flight = self.delivery.in_flight(now, horizon=max(4 * self.config.tau, 1.0))
+        left = max(link - self._in_flight, 0.0)
         self.last_gate["link"] = left
         return left / (1.0 + self._morph_share)  # the gate counts geometry; morph maps ride along
 
@@ -656,8 +657,7 @@ class Session:
         sizes = np.concatenate([nb_full, nb_coarse[two]])
         requires = np.full(k + n2, -1, np.int64)
         requires[np.nonzero(two)[0]] = k + np.arange(n2)  # the full choice builds on its stand-in
-        in_flight = self.delivery.in_flight(now, horizon=max(4 * self.config.tau, 1.0))
-        decision = gate(gains, sizes, budget, at_least_one=in_flight == 0, requires=requires)
+        decision = gate(gains, sizes, budget, at_least_one=self._in_flight == 0, requires=requires)
         full_sent = decision.send[:k]
         coarse_sent = np.zeros(k, bool)
         coarse_sent[np.nonzero(two)[0]] = decision.send[k:]
