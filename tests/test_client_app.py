@@ -127,7 +127,9 @@ def test_no_tour_holds_start_pose_and_server_close_ends_run() -> None:
     for recorder, url in _serve(Recorder(tour=False, close_after=3)):
         run = run_client(url, "tiny", duration=5.0, viewport=(64, 64), max_fps=None)
         assert recorder.done.wait(5)
-    assert run.close_reason is not None and 3 <= len(run.frames) < 20
+    # The run ended on the close, long before the 5 s it asked for (uncapped frames: their count is the
+    # machine's, so the end time says it, not a frame count).
+    assert run.close_reason is not None and len(run.frames) >= 3 and run.frames[-1].t < 2.5
     cameras = [m for m in recorder.messages if isinstance(m, Camera)]
     assert all(c.eye == [0, 0, 6] and c.forward == [0, 0, -1] for c in cameras)
 
