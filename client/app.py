@@ -95,17 +95,28 @@ class FrameRecord:
     cpu_time: float = 0.0
     prepare_time: float = 0.0
     terms: dict | None = None  # per rendering algorithm: triangles, vertices, pixels, draws (lists)
+    bytes: int = 0  # bytes of the deltas applied since the previous frame (as received: framed, maybe compressed)
+    compute: float = 0.0  # the server's selection time of the latest delta applied (s)
 
 
 @dataclass(frozen=True)
 class FrameTrace:
-    """What one frame drew, per object: keys (level-0 rep ids), continuous levels, reps and morph weights."""
+    """What one frame drew, enough to draw it again: per object its key (level-0 rep id), continuous
+    level, rep and morph weight (all schedule rows, drawn or not), the camera, and — aligned with the
+    reps actually drawn (``rep[drawn]``) — their rendering algorithm; the tree groups and resolutions."""
 
     t: float
     key: "np.ndarray"
     level: "np.ndarray"
     rep: "np.ndarray"
     weight: "np.ndarray"
+    eye: "np.ndarray | None" = None
+    forward: "np.ndarray | None" = None
+    up: "np.ndarray | None" = None
+    drawn: "np.ndarray | None" = None  # (n,) bool: the rows the cache held, hence drawn
+    algorithm: "np.ndarray | None" = None  # (drawn,) index into proto.messages.ALGORITHMS, or None (all flat)
+    vegetation: "np.ndarray | None" = None  # (g,) tree-group reps drawn
+    resolution: "np.ndarray | None" = None  # (g,) their resolution x in (0, 1]
 
 
 @dataclass(frozen=True)
@@ -180,6 +191,7 @@ class _Closed:
 class _Arrived:
     delta: Delta
     t: float  # client time of arrival
+    nbytes: int = 0  # the frame's size on the wire
 
 
 @dataclass(frozen=True)
@@ -253,7 +265,7 @@ def _receive(ws: ClientConnection, inbox: "queue.Queue[_Item]", counter: list[in
                 ws.send(encode(Pong(id=msg.id, sent=msg.sent, t=time.monotonic() - start)))
             elif isinstance(msg, Delta):
                 counter[2] += 1
-                inbox.put(_Arrived(msg, arrived))
+                inbox.put(_Arrived(msg, arrived, len(data)))
             else:
                 inbox.put(msg)
     except ConnectionClosedOK:
@@ -442,6 +454,8 @@ class _Loop:
         self._algorithms: list[tuple[float, np.ndarray, np.ndarray]] = []
         self.last: Delta | None = None
         self.upload_time = 0.0
+        self.applied_bytes = 0  # bytes of deltas applied since the last frame record
+        self.drawn_vegetation: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0))
         self.closed = False
         self.failing = False  # a send failed: the receiver is ending, its _Closed is on the way
 
@@ -463,6 +477,7 @@ class _Loop:
         if isinstance(item, _Arrived):
             delta = item.delta
             self.run.deltas_received += 1
+            self.applied_bytes += item.nbytes
             t0 = time.perf_counter()
             if delta.add:
                 added = np.fromiter((a.rep for a in delta.add), np.int64, len(delta.add))
@@ -614,7 +629,8 @@ class _Loop:
         v = self.vegetation.at(t)
         x = np.clip(np.asarray(v.level, np.float64), 0.0, 1.0)
         keep = x > 0
-        self.splats.set_resolutions(np.asarray(v.key, np.int64)[keep], x[keep])
+        self.drawn_vegetation = (np.asarray(v.key, np.int64)[keep], x[keep])
+        self.splats.set_resolutions(*self.drawn_vegetation)
 
     def pump(self, deadline: float | None) -> None:
         """Handle queued messages; with a deadline, wait for more until it (monotonic s)."""
@@ -653,6 +669,7 @@ def run_client(
     cache_bytes: int | None = None,
     reconnect_timeout: float = 10.0,
     silence_timeout: float | None = 10.0,
+    tour: "Sequence[dict] | None" = None,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
@@ -671,6 +688,8 @@ def run_client(
     the cache's held manifest, while frames go on from what is resident; a link
     silent for ``silence_timeout`` s (None: no limit) counts as lost. A ``busy`` server
     is retried as long on the first connect too.
+    ``tour`` (keys ``{t, eye, forward, up}``, as ``proto.messages.TourKey``) replaces the
+    tour the server's welcome carries: evaluations drive the camera along paths of their own.
     Raises ``ClientError`` if the session cannot be opened, ``client.window.WindowError``
     if the window cannot.
     """
@@ -678,6 +697,11 @@ def run_client(
         raise ValueError(f"navigate must be tour, fly or walk, got {navigate!r}")
     if navigate != "tour" and not window:
         raise ValueError("interactive navigation (fly, walk) needs window=True")
+    if tour is not None and navigate != "tour":
+        raise ValueError("a tour and interactive navigation exclude each other")
+    if tour is not None:
+        tour = list(tour)
+        Tour(tour)  # raises ValueError now, before connecting, on a malformed tour
     width, height = (int(v) for v in viewport)
     view = None
     if window:
@@ -716,7 +740,7 @@ def run_client(
         try:
             loop.splats = SplatLayer(renderer.ctx)
             _frames(loop, welcome, start, duration, 1.0 / max_fps if max_fps else 0.0, on_frame, trace,
-                    window=view, navigator=navigator)
+                    window=view, navigator=navigator, tour_keys=tour)
             if screenshot is not None:
                 renderer.save_png(screenshot)
         finally:
@@ -757,12 +781,16 @@ def _frames(
     *,
     window=None,
     navigator: Navigator | None = None,
+    tour_keys: list[dict] | None = None,
 ) -> None:
     """The frame loop proper; returns after ``duration`` s, when the connection ends or the window closes.
 
     With a ``navigator`` the user's input moves the camera, from the welcome's start pose.
     """
-    tour = Tour(welcome.tour) if welcome.tour else Tour([{"t": 0.0, **welcome.start.model_dump()}])
+    if tour_keys is not None:
+        tour = Tour(tour_keys)
+    else:
+        tour = Tour(welcome.tour) if welcome.tour else Tour([{"t": 0.0, **welcome.start.model_dump()}])
     if navigator is not None:
         navigator.place(welcome.start)
         tour = navigator
@@ -783,8 +811,9 @@ def _frames(
         here = cache.holds(rows.rep)
         loop.vegetation_at(t)
         layers = (loop.splats,) if loop.splats is not None else ()
+        drawn_algorithms = loop.algorithms(rows.key[here], t)
         stats = renderer.draw(reps, eye, forward, up, NEAR, far_plane(eye, bounds), weights=weights,
-                              algorithms=loop.algorithms(rows.key[here], t), levels=rows.level[here],
+                              algorithms=drawn_algorithms, levels=rows.level[here],
                               layers=layers)
         terms = stats.terms
         loop.send(FrameReport(
@@ -804,10 +833,17 @@ def _frames(
             gpu_time=stats.gpu_time, cpu_time=stats.cpu_time, prepare_time=stats.prepare_time,
             terms=None if terms is None else {"triangles": list(terms.triangles), "vertices": list(terms.vertices),
                                               "pixels": list(terms.pixels), "draws": list(terms.draws)},
+            bytes=loop.applied_bytes, compute=last.compute if last else 0.0,
         )
         if trace:
-            loop.run.trace.append(FrameTrace(t, rows.key, rows.level, rows.rep, rows.weight))
+            veg, res = loop.drawn_vegetation
+            loop.run.trace.append(FrameTrace(
+                t, rows.key, rows.level, rows.rep, rows.weight, eye=np.asarray(eye, np.float64).copy(),
+                forward=np.asarray(forward, np.float64).copy(), up=np.asarray(up, np.float64).copy(), drawn=here,
+                algorithm=None if drawn_algorithms is None else np.asarray(drawn_algorithms, np.int64),
+                vegetation=veg, resolution=res))
         loop.upload_time = 0.0
+        loop.applied_bytes = 0
         loop.run.frames.append(record)
         if on_frame is not None:
             on_frame(record)

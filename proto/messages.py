@@ -42,7 +42,7 @@ __all__ = [
     "SERVER_TYPES",
 ]
 
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 
 #: Rendering algorithms (Funkhouser & Séquin's R), cheapest first; an index into this is an ``algorithm``.
 ALGORITHMS = ("flat", "lit", "textured")
@@ -332,6 +332,8 @@ class Delta(_Message):
     budget: Annotated[float, Field(ge=0.0)] = 0.0
     predicted_cost: Annotated[float, Field(ge=0.0)] = 0.0
     cost_coeff: Annotated[float, Field(ge=0.0)] = 0.0
+    #: The server's wall time (s) to select and build this delta (F&S's "compute" column)
+    compute: Annotated[float, Field(ge=0.0, le=3600.0)] = 0.0
     morphs: Morphs = Morphs()
     #: Tree groups drawn from t0 (their representation) and their resolution x ∈ [0, 1]
     vegetation: Annotated[list[Id], Field(max_length=MAX_LIST)] = []

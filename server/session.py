@@ -602,6 +602,7 @@ class Session:
             budget=budget,
             predicted_cost=choice.cost,
             cost_coeff=self.cost.c_vertex,
+            compute=min(max(took, 0.0), 3600.0),
             morphs=morphs,
             vegetation=vegetation,
             resolution=resolution,
