@@ -547,6 +547,96 @@ def loadtest(
         print(json.dumps(summary.as_dict()))
 
 
+EVAL_METHODS = "none,static,feedback,optimization,hierarchical,predictive,mixed"
+
+
+@app.command("eval")
+def eval_(
+    scene: str = typer.Argument(..., metavar="SCENE", help="a named scene (auditorium, denhaag, sthelens, demo, "
+                                "megacity), a scene store (.db), or a CityJSON/glTF/OBJ/PLY/DEM/CityGML file "
+                                "(built once with a generated tour)"),
+    out: Optional[Path] = typer.Option(None, help="report folder (default: walkstream-out/eval-SCENE)"),
+    target_ms: float = typer.Option(50.0, help="the target frame time of Table 1 and Figure 7 (ms)"),
+    budgets: Optional[str] = typer.Option(None, help="target frame times to run, comma-separated ms "
+                                          "(default: ½, 1 and 2 × the target)"),
+    methods: str = typer.Option(EVAL_METHODS, help="methods to run, comma-separated"),
+    duration: Optional[float] = typer.Option(None, help="seconds of tour per run (default: the whole tour, "
+                                             "at most 90 s)"),
+    width: int = typer.Option(640),
+    height: int = typer.Option(360),
+    tau: float = typer.Option(0.5, help="seconds between selections (τ) on the evaluation's server"),
+    seed: int = typer.Option(0, help="scene seed (named scenes) and the quality sampling's seed"),
+    every: int = typer.Option(10, help="measure image quality on every EVERY-th frame (and the frame before)"),
+    samples: int = typer.Option(24, help="at most this many quality samples a run, spread over it (0: no cap)"),
+    quality: bool = typer.Option(True, "--quality/--no-quality", help="measure FLIP, PSNR, SSIM and popping"),
+    scenarios: bool = typer.Option(True, "--scenarios/--no-scenarios", help="run the failure scenarios"),
+    scenario_method: str = typer.Option("predictive", help="the method the failure scenarios run"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line: Table 1, the checks, the "
+                                 "scenarios and the report's path"),
+) -> None:
+    """Every method over the scene's tour with the real server and client: Table 1, Figure 7, image error
+    against frame time, false-colour views at A and C, and the scenarios where methods fail — as a report
+    folder with an index.html."""
+    from rich.console import Console
+
+    from bench import evaluate as ev
+    from bench import report
+
+    console = Console(stderr=as_json, soft_wrap=True)
+    if not 5 <= target_ms <= 1000:
+        raise typer.BadParameter("must lie in [5, 1000]", param_hint="--target-ms")
+    try:
+        budget_list = None if budgets is None else [float(b) for b in budgets.split(",") if b.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"not a comma-separated list of numbers: {budgets!r}", param_hint="--budgets")
+    if budget_list is not None and (not budget_list or any(not 1 <= b <= 2000 for b in budget_list)):
+        raise typer.BadParameter("each budget must lie in [1, 2000] ms", param_hint="--budgets")
+    names = [m.strip() for m in methods.split(",") if m.strip()]
+    unknown = [m for m in names if m not in ev.METHODS]
+    if unknown or not names:
+        raise typer.BadParameter(f"unknown method(s) {', '.join(unknown) or '(none given)'}; known: "
+                                 f"{', '.join(ev.METHODS)}", param_hint="--methods")
+    if scenario_method not in ev.METHODS:
+        raise typer.BadParameter(f"unknown method {scenario_method!r}", param_hint="--scenario-method")
+    if duration is not None and duration <= 3.0:
+        raise typer.BadParameter("a run needs more than the 2 s warm-up", param_hint="--duration")
+    if every < 1:
+        raise typer.BadParameter("must be ≥ 1", param_hint="--every")
+    if samples < 0:
+        raise typer.BadParameter("must be ≥ 0", param_hint="--samples")
+    bar, tick = _progress_bar("eval", quiet=False)
+    with bar:
+        try:
+            store, name = ev.resolve_scene(scene, seed=seed, cache_dir=DEFAULT_CACHE, progress=tick)
+        except (ValueError, FileNotFoundError) as exc:
+            raise typer.BadParameter(str(exc), param_hint="SCENE")
+        folder = out or Path("walkstream-out") / f"eval-{name}"
+        folder.mkdir(parents=True, exist_ok=True)
+        results = ev.evaluate(store, scene=name, methods=names, target_ms=target_ms, budgets_ms=budget_list,
+                              duration=duration, viewport=(width, height), tau=tau, seed=seed, quality=quality,
+                              every=every, samples=samples or None, out=folder, progress=tick)
+        if scenarios:
+            from bench.scenarios import run_scenarios
+
+            results["scenarios"] = run_scenarios(store, name, target_ms=target_ms, method=scenario_method,
+                                                 viewport=(width, height), tau=tau, seed=seed, progress=tick)
+    index = report.write_report(results, folder)
+    for line in report.summary_lines(results):
+        console.print(line, markup=False, highlight=False)
+    for s in results.get("scenarios") or []:
+        console.print(s["line"], markup=False, highlight=False)
+    console.print(f"report: {index}")
+    if as_json:
+        print(json.dumps({
+            "scene": name, "store": str(store), "report": str(index), "target_ms": target_ms,
+            "budgets_ms": results.get("budgets_ms"), "table1": report.table1(results),
+            "checks": report.checks(results),
+            "runs": [{"method": r["method"], "target_ms": r["target_ms"], **r["summary"]} for r in results["runs"]],
+            "scenarios": [{k: v for k, v in s.items()} for s in results.get("scenarios") or []],
+            "skipped": results.get("skipped", {}),
+        }))
+
+
 def main() -> None:
     app()
 

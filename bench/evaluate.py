@@ -9,7 +9,7 @@ representations and bytes, and a trace of what it drew; afterwards the traces
 are replayed untimed (``bench.replay``) against the full-detail frame at the
 same camera for image error and popping (``bench.quality``), and the
 false-colour level images at viewpoints A and C are drawn. The result is the
-dict ``/tmp/briefs/schema.md`` describes (``bench.report`` writes it out).
+dict the README's "Evaluation" section describes (``bench.report`` writes it out).
 
 The methods (``METHODS``) and what a session does with them
 (``server/session.py``, ``server/select/selection.py``):
@@ -41,8 +41,8 @@ message rate limit (see ``MAX_FPS`` for what was measured).
 from __future__ import annotations
 
 import hashlib
-import inspect
 import math
+import os
 import pickle
 import tempfile
 from dataclasses import dataclass
@@ -327,11 +327,6 @@ def _nearest(traces: list, at_t: float):
     return traces[int(np.argmin(np.abs(t - at_t)))]
 
 
-def _samples_expected(frames: Mapping[str, Sequence], every: int, warmup: float) -> int:
-    n = int(np.sum(np.asarray(frames["t"], np.float64) >= warmup))
-    return -(-n // max(every, 1))
-
-
 def evaluate(
     store: str | Path,
     *,
@@ -350,13 +345,16 @@ def evaluate(
     out: str | Path | None = None,
     progress: Progress | None = None,
     max_fps: float | None = MAX_FPS,
+    samples: int | None = 24,
+    workers: int | None = None,
 ) -> dict:
     """Run every method over ``store``'s tour on one real server; the schema's results dict.
 
     ``duration`` defaults to the tour's length, at most ``MAX_DURATION_S``; ``budgets_ms`` to 0.5×, 1× and
     2× ``target_ms`` (the target is always among them). ``progress(stage, done, total)`` follows the stages
     "runs" and "quality". With ``quality`` the traces are replayed afterwards (one ``bench.replay.Replayer``)
-    for image error and popping, every ``every``-th frame after the warm-up, and with ``out`` the false-colour
+    for image error and popping, every ``every``-th frame after the warm-up but at most ``samples`` frames a
+    run (spread over it; None: no cap), in ``workers`` processes (default: one per CPU), and with ``out`` the false-colour
     level images at viewpoints A and C of the runs at ``target_ms`` go to ``out/images``. Each run's traces
     wait on disk (a temporary folder), not in memory, and are dropped once measured. The run order is
     fixed; ``seed`` is recorded and handed to the quality sampling where it takes one.
@@ -388,7 +386,7 @@ def evaluate(
     results: dict[str, Any] = {
         "scene": scene, "store": str(store.resolve()), "target_ms": float(target_ms), "budgets_ms": budgets,
         "viewport": [int(v) for v in viewport], "fov_y": float(fov_y), "tau_s": float(tau), "seed": int(seed),
-        "duration_s": float(duration), "warmup_s": float(warmup), "every": int(every),
+        "duration_s": float(duration), "warmup_s": float(warmup), "every": int(every), "samples": samples,
         "viewpoints": {k: v for k, v in viewpoints.items() if v <= duration},
         "methods": [m.name for m in chosen if not (m.continuous_only and not continuous)],
         "skipped": skipped_methods(chosen, continuous),
@@ -417,49 +415,60 @@ def evaluate(
                 tick("runs", i + 1, len(specs))
         if quality:
             _measure_quality(results, spilled, near, store, viewport, fov_y, every, warmup, seed,
-                             None if out is None else Path(out), tick)
+                             None if out is None else Path(out), tick, samples=samples, workers=workers)
     return _plain(results)
 
 
 def _measure_quality(results: dict, spilled: list[Path], near: dict, store: Path, viewport, fov_y: float,
-                     every: int, warmup: float, seed: int, out: Path | None, tick: Progress) -> None:
-    """Replay each run's traces (loaded one run at a time) for image error; then the false-colour images."""
+                     every: int, warmup: float, seed: int, out: Path | None, tick: Progress,
+                     samples: int | None = None, workers: int | None = None) -> None:
+    """Replay each run's traces for image error, a run per worker process; then the false-colour images.
+
+    The runs are over by now, so the replay may use every core: each worker is a fresh (spawned) process
+    with its own EGL context and ``Replayer`` — GL state does not survive a fork.
+    """
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
     from bench import quality as q
     from bench.replay import Replayer
 
     runs = results["runs"]
-    expected = [_samples_expected(r["frames"], every, warmup) for r in runs]
-    total = max(sum(expected), 1)
-    takes_seed = "seed" in inspect.signature(q.measure).parameters
-    done = 0
-    tick("quality", 0, total)
-    with Replayer(store, viewport=tuple(viewport), fov_y=fov_y) as replayer:
-        for run, path, n in zip(runs, spilled, expected):
-            with open(path, "rb") as f:
-                traces = pickle.load(f)
-            path.unlink()
-            base = done
-
-            def sample(d: int, _t: int, base=base, n=n) -> None:
-                tick("quality", min(base + min(d, n), total), total)
-
-            opts = {"seed": seed} if takes_seed else {}
-            measured = q.measure(replayer, traces, every=every, warmup=warmup, progress=sample, **opts)
-            del traces
-            run["quality"] = _plain({k: list(measured.get(k, [])) for k in ("t", "frame", "flip", "psnr", "ssim",
-                                                                               "popping")})
-            run["summary"].update(_plain(q.summary(measured)))
-            done = base + n
-            tick("quality", min(done, total), total)
-        if out is not None and near:
-            images = out / "images"
-            images.mkdir(parents=True, exist_ok=True)
+    tick("quality", 0, len(runs))
+    workers = max(1, min(workers or os.cpu_count() or 1, len(runs)))
+    jobs = [(str(store), tuple(viewport), fov_y, str(path), every, warmup, samples, seed) for path in spilled]
+    measured: list[dict | None] = [None] * len(runs)
+    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        futures = {pool.submit(_quality_job, *job): i for i, job in enumerate(jobs)}
+        for done, fut in enumerate(cf.as_completed(futures), start=1):
+            measured[futures[fut]] = fut.result()
+            tick("quality", done, len(runs))
+    for run, m in zip(runs, measured):
+        run["quality"] = _plain({k: list(m.get(k, [])) for k in ("t", "frame", "flip", "psnr", "ssim", "popping")})
+        run["summary"].update(_plain(q.summary(m)))
+    if out is not None and near:
+        images = out / "images"
+        images.mkdir(parents=True, exist_ok=True)
+        with Replayer(store, viewport=tuple(viewport), fov_y=fov_y) as replayer:
             for label, by_method in near.items():
                 traced = {m: [tr] for m, tr in by_method.items() if tr is not None}
                 if not traced:
                     continue
                 files = q.false_colour_images(replayer, traced, results["viewpoints"][label], images, label)
                 results["images"][label] = {m: f"images/{Path(p).name}" for m, p in files.items()}
+
+
+def _quality_job(store: str, viewport: tuple, fov_y: float, spilled: str, every: int, warmup: float,
+                 samples: int | None, seed: int) -> dict:
+    """One run's image error (in a worker process): load its spilled traces, replay, measure, delete them."""
+    from bench import quality as q
+    from bench.replay import Replayer
+
+    with open(spilled, "rb") as f:
+        traces = pickle.load(f)
+    Path(spilled).unlink()
+    with Replayer(store, viewport=viewport, fov_y=fov_y) as replayer:
+        return q.measure(replayer, traces, every=every, warmup=warmup, samples=samples, seed=seed)
 
 
 # ---------------------------------------------------------------- scenes

@@ -86,8 +86,13 @@ def popping(drawn_prev: np.ndarray, drawn_now: np.ndarray, full_prev: np.ndarray
 
 
 def measure(replayer, traces: Sequence, *, every: int = 10, warmup: float = 2.0,
-            progress: Callable[[int, int], None] | None = None) -> dict:
+            progress: Callable[[int, int], None] | None = None, samples: int | None = None,
+            seed: int = 0) -> dict:
     """Image error and popping of every ``every``-th traced frame from ``warmup`` s on (the schema's "quality").
+
+    ``samples`` caps the frames measured (the stride grows to spread them over the whole run: FLIP alone
+    takes about half a second a frame); ``seed`` picks the stride's offset, so the same seed measures
+    the same frames.
 
     replayer : ``bench.replay.Replayer`` on the run's scene, viewport and fov
     traces   : the run's ``ClientRun.trace`` (one per frame, so a trace's index is its frame's)
@@ -99,7 +104,11 @@ def measure(replayer, traces: Sequence, *, every: int = 10, warmup: float = 2.0,
     """
     if every < 1:
         raise ValueError(f"every must be ≥ 1, got {every}")
-    picked = [i for i, tr in enumerate(traces) if tr.t >= warmup][::every]
+    if samples is not None and samples < 1:
+        raise ValueError(f"samples must be ≥ 1, got {samples}")
+    eligible = [i for i, tr in enumerate(traces) if tr.t >= warmup]
+    stride = every if samples is None else max(every, -(-len(eligible) // samples))
+    picked = eligible[seed % stride::stride]
     out: dict[str, list] = {k: [] for k in ("t", "frame", "flip", "psnr", "ssim", "popping")}
     for done, i in enumerate(picked, start=1):
         tr = traces[i]
