@@ -67,7 +67,7 @@ from .select.camera import View
 from .select.cost import CostModel
 from .select.cost_online import OnlineCostModel
 from .select.morph import MorphScheduler, mark, rep_parents
-from .select.predict import Limits, Predictor, conservative_camera
+from .select.predict import Limits, Predictor, conservative_camera, tour_speed
 from .select.selection import Interval, Memory, Scene, select
 from .select.solvers.candidates import Limit
 from .stream import gain, gate, realise_bytes, resident_fallback
@@ -337,7 +337,9 @@ class Session:
         self._ramp = MorphScheduler(self.config.tau, morph=hello.morph)
         if hello.predict:
             turn = None if hello.max_turn is None else float(np.radians(hello.max_turn))
-            self.predictor = Predictor(Limits(speed=hello.max_speed, turn=turn))
+            # Without a stated speed limit, a jump is a teleport only if it outruns the scene's own tour by 3×.
+            teleport = max(200.0, 3.0 * tour_speed(index.tour)) if hello.max_speed is None else 200.0
+            self.predictor = Predictor(Limits(speed=hello.max_speed, turn=turn), teleport_speed=teleport)
         self._adopt(held, resumed)
         self.state = SessionState.ACTIVE
         self._next_ping = now + self.config.ping_interval

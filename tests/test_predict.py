@@ -455,3 +455,22 @@ def test_jittered_still_camera_does_not_drift():
         turns.append(angle_deg(q.forward, X))
     assert np.mean(errs) < 1.5 * sigma * math.sqrt(3)
     assert np.mean(turns) < 1.0
+
+
+def test_a_fast_tour_is_not_a_string_of_teleports() -> None:
+    """St. Helens' flyover moves at about 1.2 km/s: with the tour's own speed it predicts, without it every sample resets."""
+    from server.select.predict import tour_speed
+
+    keys = [{"t": i * 0.05, "eye": [i * 60.0, 0.0, 1000.0], "forward": [1.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0]}
+            for i in range(60)]
+    assert tour_speed(keys) == pytest.approx(1200.0)
+    assert tour_speed(keys[:1]) == 0.0 and tour_speed([]) == 0.0
+
+    def resets(teleport: float) -> int:
+        p = Predictor(Limits(), teleport_speed=teleport)
+        for k in keys:
+            p.add(k["t"], k["eye"], k["forward"], k["up"])
+        return p.resets
+
+    assert resets(200.0) >= len(keys) - 2
+    assert resets(max(200.0, 3.0 * tour_speed(keys))) <= 1

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Limits", "Pose", "Predictor", "conservative_camera"]
+__all__ = ["Limits", "Pose", "Predictor", "conservative_camera", "tour_speed"]
 
 #: Residuals past HUBER × the median residual (per eye / forward / up) are downweighted.
 HUBER = 2.5
@@ -42,6 +42,25 @@ REFIT_EVERY = 0.25
 #: A view-direction change smaller than this is never a teleport, however fast.
 TELEPORT_MIN_TURN_DEG = 60.0
 _EPS = 1e-12
+
+
+def tour_speed(tour) -> float:
+    """The fastest a scene's own tour moves (m/s), from its keys ({"t", "eye", …} mappings); 0 if it cannot say.
+
+    A flyover of a mountain (St. Helens' tour: about 1 km/s) is not a string of teleports: a session
+    whose client gave no speed limit takes its teleport speed from this.
+    """
+    if not tour or len(tour) < 2:
+        return 0.0
+    t = np.array([float(k["t"]) for k in tour], np.float64)
+    eye = np.array([k["eye"] for k in tour], np.float64).reshape(-1, 3)
+    order = np.argsort(t, kind="stable")
+    t, eye = t[order], eye[order]
+    dt = np.diff(t)
+    ok = dt > 1e-6
+    if not ok.any():
+        return 0.0
+    return float((np.linalg.norm(np.diff(eye, axis=0), axis=1)[ok] / dt[ok]).max())
 
 
 @dataclass(frozen=True)
