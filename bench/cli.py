@@ -571,6 +571,8 @@ def eval_(
     quality: bool = typer.Option(True, "--quality/--no-quality", help="measure FLIP, PSNR, SSIM and popping"),
     scenarios: bool = typer.Option(True, "--scenarios/--no-scenarios", help="run the failure scenarios"),
     scenario_method: str = typer.Option("predictive", help="the method the failure scenarios run"),
+    scenario: Optional[list[str]] = typer.Option(None, "--scenario", help="run only these scenarios (repeat it; "
+                                                 "spin, turn, oscillation, drift, below_coarsest, network)"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON line: Table 1, the checks, the "
                                  "scenarios and the report's path"),
 ) -> None:
@@ -604,6 +606,13 @@ def eval_(
         raise typer.BadParameter("must be ≥ 1", param_hint="--every")
     if samples < 0:
         raise typer.BadParameter("must be ≥ 0", param_hint="--samples")
+    if scenario:
+        from bench.scenarios import SCENARIOS
+
+        bad = [n for n in scenario if n not in SCENARIOS]
+        if bad:
+            raise typer.BadParameter(f"unknown scenario(s) {', '.join(bad)}; known: {', '.join(SCENARIOS)}",
+                                     param_hint="--scenario")
     bar, tick = _progress_bar("eval", quiet=False)
     with bar:
         try:
@@ -619,7 +628,8 @@ def eval_(
             from bench.scenarios import run_scenarios
 
             results["scenarios"] = run_scenarios(store, name, target_ms=target_ms, method=scenario_method,
-                                                 viewport=(width, height), tau=tau, seed=seed, progress=tick)
+                                                 names=scenario or None, viewport=(width, height), tau=tau,
+                                                 seed=seed, progress=tick)
     index = report.write_report(results, folder)
     for line in report.summary_lines(results):
         console.print(line, markup=False, highlight=False)
