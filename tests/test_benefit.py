@@ -20,6 +20,8 @@ from server.select.benefit import (
     importance,
     importance_table,
     motion,
+    original_faces,
+    resolved_accuracy,
     zach_accuracy,
 )
 
@@ -150,6 +152,56 @@ def test_zach_mode_uses_the_finest_level_as_original():
     faces = np.array([[100, 500, 2000]])
     got = benefit_matrix(size, faces, factors=BenefitFactors(accuracy="zach"))
     np.testing.assert_allclose(got[0], 1000 * np.array([0.1, 0.5, 1.0]))
+
+
+def test_original_faces_of_a_node_are_its_subtree_leaves_finest_faces():
+    #        0            rows: 0 root (HLOD), 1, 2 inner, 3..6 leaves; 7 a lone chain
+    #      /   \
+    #     1     2
+    #    / \   / \
+    #   3   4 5   6
+    parent = np.array([-1, 0, 0, 1, 1, 2, 2, -1])
+    finest = np.array([50, 30, 40, 1000, 2000, 3000, 4000, 700])
+    got = original_faces(finest, parent)
+    np.testing.assert_array_equal(got, [10_000, 3000, 7000, 1000, 2000, 3000, 4000, 700])
+    # Rows need not come parents first; a chain (no hierarchy) is its finest level.
+    order = np.array([6, 3, 7, 1, 0, 5, 2, 4])
+    where = np.argsort(order)
+    np.testing.assert_array_equal(original_faces(finest[order], np.where(parent[order] >= 0, where[parent[order]], -1)),
+                                  got[order])
+    np.testing.assert_array_equal(original_faces(finest), finest)
+    # Never fewer than the node's own finest level.
+    assert original_faces(np.array([5000, 10]), np.array([-1, 0]))[0] == 5000
+
+
+def test_original_faces_rejects_bad_parents():
+    with pytest.raises(ValueError, match="like finest"):
+        original_faces(np.ones(3), np.array([-1, 0]))
+    with pytest.raises(ValueError, match="−1"):
+        original_faces(np.ones(2), np.array([-1, 5]))
+    with pytest.raises(ValueError, match="cycle"):
+        original_faces(np.ones(3), np.array([-1, 2, 1]))
+
+
+def test_auto_accuracy_is_zach_on_the_hierarchy_and_fs_elsewhere_and_explicit_wins():
+    auto = BenefitFactors()
+    assert auto.accuracy == "auto"
+    assert resolved_accuracy(auto, hierarchical=True).accuracy == "zach"
+    assert resolved_accuracy(auto, hierarchical=False).accuracy == "fs"
+    assert resolved_accuracy(auto, True) is resolved_accuracy(auto, True)  # kept, not rebuilt each τ
+    for explicit in ("fs", "zach", "off"):
+        f = BenefitFactors(accuracy=explicit)
+        assert resolved_accuracy(f, True) is f and resolved_accuracy(f, False) is f
+    size, faces = np.array([300.0, 5e4]), np.array([[10, 100, 1000], [20, 200, 2000]])
+    np.testing.assert_array_equal(benefit_matrix(size, faces, factors=auto),
+                                  benefit_matrix(size, faces, factors=BenefitFactors(accuracy="fs")))
+
+
+def test_zach_mode_takes_given_original_faces():
+    # A coarse node standing for 40k faces, seen over 100k pixels: its 1,000 faces are 2.5 % accurate.
+    got = benefit_matrix(np.array([1e5]), np.array([[1000]]), factors=BenefitFactors(accuracy="zach"),
+                         original_faces=np.array([40_000]))
+    assert got[0, 0] == pytest.approx(1e5 * 1000 / 40_000)
 
 
 def _inputs(draw, n, levels, r):

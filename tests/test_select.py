@@ -131,3 +131,88 @@ def test_cost_model_moves_toward_measured_time_per_vertex():
     assert abs(m.c_vertex - 5e-7) < 1e-9
     assert not m.update(0.05, 10)  # too few vertices to say anything
     assert not m.update(float("nan"), 100_000)
+
+
+def _two_level_scene():
+    """A coarse parent (200 faces) over two children (500 / 5,000 faces each) with a gap between them, ahead."""
+    from server.select.selection import Scene
+
+    lo = np.array([[-10.0, 20.0, -5.0], [-10.0, 20.0, -5.0], [4.0, 20.0, -5.0]])
+    hi = np.array([[10.0, 40.0, 5.0], [-4.0, 40.0, 5.0], [10.0, 40.0, 5.0]])
+    faces = np.array([200, 500, 5000, 500, 5000])
+    tree = Levels(lo, hi, np.array([0, 1, 3]), np.array([1, 2, 2]), faces, faces * 6 // 10,
+                  ids=np.arange(3), parent=np.array([-1, 0, 0]))
+    flat = Levels(lo[1:], hi[1:], np.array([1, 3]), np.array([2, 2]), faces, faces * 6 // 10, ids=np.array([1, 2]))
+    return Scene(flat=flat, hierarchy=tree, n_objects=3)
+
+
+def test_hierarchical_selection_refines_a_coarse_parent_seen_large():
+    # The parent covers ~10⁵ pixels with 200 faces standing for 10,000: Zach's accuracy 2 %, so splitting
+    # it pays although the children's boxes cover fewer pixels than the parent's. With F&S's accuracy
+    # (≈ 1 above ~100 faces) the split gained nothing and the solver stayed at the parent.
+    scene = _two_level_scene()
+    assert scene.hierarchy.original_faces().tolist() == [10_000, 5000, 5000]
+    model, budget = CostModel(c_vertex=1e-7), 0.05  # everything costs 0.6 ms
+    choice = select(scene, _view(), model, budget, "hierarchical")
+    assert sorted(choice.reps.tolist()) == [2, 4] and choice.cost <= budget
+    from server.select.benefit import BenefitFactors
+
+    fs = select(scene, _view(), model, budget, "hierarchical", factors=BenefitFactors(accuracy="fs"))
+    assert fs.reps.tolist() == [0]  # an explicit accuracy still wins
+
+
+def test_hierarchical_selection_on_a_city_refines_within_budget_and_cuts_validly(denhaag_store):
+    from server.scene.store import SceneStore
+    from server.select.selection import Memory, Scene, _cameras
+    from server.select.camera import cull_hierarchy
+    from server.select.solvers.hierarchical import Forest, is_valid_cut
+
+    with SceneStore.open(denhaag_store) as store:
+        index = store.index
+        scene = Scene.of(index)
+    lv = scene.hierarchy
+    # The roots stand for every leaf's finest faces.
+    kids = np.bincount(lv.parent[lv.parent >= 0], minlength=lv.n)
+    finest = lv.rep_faces[lv.rep_first + lv.rep_count - 1]
+    assert lv.original_faces()[lv.parent < 0].sum() == finest[kids == 0].sum()
+    bounds = np.asarray(index.bounds, np.float64)
+    c = bounds.mean(axis=0)
+    eye = c + [0.0, -0.8 * np.ptp(bounds[:, 1]), 0.3 * np.ptp(bounds[:, 1])]
+    view = View.of_pose(eye, c - eye, [0, 0, 1], 60.0, (640, 360), bounds)
+    model = CostModel(c_vertex=2e-7)
+    roots = int((lv.parent < 0).sum())
+    full = model.predict(float(lv.rep_vertices[lv.rep_first + lv.rep_count - 1][kids == 0].sum()))
+    costs = []
+    for budget in (0.1 * full, 0.5 * full, 2 * full):
+        choice = select(scene, view, model, budget, "hierarchical", memory=Memory())
+        assert choice.cost <= budget * (1 + 1e-9)
+        costs.append(choice.cost)
+        # The choice is a valid cut of the visible forest.
+        cam = _cameras(view, 20.0, None)[0]
+        visible = cull_hierarchy(lv.parent, lv.object_lo, lv.object_hi, cam.planes)
+        rows = np.searchsorted(lv.rep_first, choice.reps, side="right") - 1
+        level = np.full(lv.n, -1, np.int64)
+        level[rows] = choice.reps - lv.rep_first[rows]
+        z = np.zeros((lv.n, int(lv.rep_count.max())))
+        forest = Forest.of(lv.parent, z, z, np.arange(z.shape[1])[None, :] < lv.rep_count[:, None], visible)
+        assert is_valid_cut(forest, level)
+    assert costs[0] <= costs[1] <= costs[2]
+    assert choice.reps.size > 10 * roots  # ample budget: refined far below the roots
+
+
+def test_a_nodes_screen_size_never_exceeds_its_visible_childrens_together():
+    from server.select.selection import _node_size
+
+    # Root 0 over 1 and 2; 1 over 3 and 4. Two cameras; row order need not be parents first.
+    parent = np.array([-1, 0, 0, 1, 1])
+    z = np.zeros((5, 3))
+    lv = Levels(z, z, np.arange(5), np.ones(5, np.int64), np.ones(5), np.ones(5), parent=parent)
+    rows = np.array([3, 0, 4, 1, 2])
+    own = np.array([[10.0, 900.0, 20.0, 500.0, 100.0],   # camera 0: the boxes' gaps make the inner nodes larger
+                    [10.0, 50.0, 20.0, 500.0, 100.0]])  # camera 1: the root's own box is the smaller
+    got = _node_size(lv, rows, own)
+    # Node 1: min(500, 10 + 20) = 30; root: min(900, 30 + 100) = 130, and min(50, 130) = 50 under camera 1.
+    np.testing.assert_array_equal(got, [[10.0, 130.0, 20.0, 30.0, 100.0], [10.0, 50.0, 20.0, 30.0, 100.0]])
+    # Culled children (not among the rows) do not count: node 1 alone under the root.
+    got = _node_size(lv, np.array([0, 1]), np.array([[900.0, 500.0]]))
+    np.testing.assert_array_equal(got, [[500.0, 500.0]])

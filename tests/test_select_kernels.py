@@ -114,6 +114,41 @@ def test_benefit_sum_equals_the_weighted_benefit_matrices(kern, seed, n, levels,
         assert importance(klass, table).shape == (n,)
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 60), levels=st.integers(1, 4), r=st.integers(1, 3),
+       hysteresis=st.booleans())
+def test_benefit_sum_with_original_faces_equals_the_numpy_path(kern, seed, n, levels, r, hysteresis):
+    """Zach's accuracy with a hierarchy's #originalFaces (a subtree's, more than the row's own faces)."""
+    rng = np.random.default_rng(seed)
+    cams = int(rng.integers(1, 4))
+    k = levels * r
+    faces = np.sort(rng.integers(1, 5_000, (n, levels)), axis=1).repeat(r, axis=1).astype(np.int32)
+    vertices = (faces * rng.uniform(0.5, 1.5, faces.shape)).astype(np.int32)
+    valid = np.arange(k)[None, :] < (rng.integers(1, levels + 1, n) * r)[:, None]
+    original = faces.max(axis=1) * rng.choice([1.0, 3.0, 40.0], n)
+    size = rng.choice([0.0, 3.0, 400.0, 2e5], (cams, n)) * rng.uniform(0.5, 1.5, (cams, n))
+    offset = rng.uniform(0, 1.2, (cams, n))
+    speed = [rng.uniform(0, 3000, n) if j % 2 else None for j in range(cams)]
+    weight = rng.uniform(0.05, 1.0, cams)
+    previous = rng.integers(-1, k + 1, n)
+    factors = BenefitFactors(accuracy="zach", hysteresis=hysteresis, algorithm_names=("flat", "lit", "textured")[:r])
+    want = np.zeros((n, k))
+    for j in range(cams):
+        want += weight[j] * benefit_matrix(size[j], faces, algorithms=r, factors=factors, vertices=vertices,
+                                           original_faces=original, offset=offset[j], speed=speed[j],
+                                           previous=previous)
+    want = np.where(valid, want, 0.0)
+    got = selection._benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, None,
+                                    None, previous, original)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    # The original faces are really read: a node of 1,000 faces standing for 40,000, over 10⁵ pixels.
+    one = selection._benefit_kernel(kern, np.array([[1e5]]), np.zeros((1, 1)), [None], np.ones(1),
+                                    np.array([[1000]]), np.array([[600]]), np.ones((1, 1), bool), 1,
+                                    BenefitFactors(accuracy="zach", focus=False), None, None, None,
+                                    np.array([40_000.0]))
+    assert one[0, 0] == pytest.approx(1e5 * 1000 / 40_000)
+
+
 def test_the_view_matrix_is_protos_cached_and_read_only():
     rng = np.random.default_rng(5)
     for _ in range(200):

@@ -191,7 +191,7 @@ def _pow(x, m):
 
 @_jit()
 def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per_vertex, exponent, n_alg,
-                accuracy_mode, use_size, importance, focus_strength, motion_strength, frame_time, previous,
+                accuracy_mode, original, use_size, importance, focus_strength, motion_strength, frame_time, previous,
                 level_weight, algorithm_weight, out):
     """out[i, k] = Σ_j weight[j] · Benefit_j(i, k) over valid options, 0 elsewhere (``benefit.benefit_matrix``).
 
@@ -201,6 +201,7 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
     faces, vertices : (v, K); valid : (v, K) bool
     per_vertex, exponent : (R,) F&S Samples (vertices, not faces) and m per algorithm; option k uses k % R
     accuracy_mode : ACCURACY_OFF, ACCURACY_FS or ACCURACY_ZACH
+    original : (v,) Zach's #originalFaces per row (``benefit.original_faces``); empty: each row's most faces
     focus_strength, motion_strength : the factors' slopes (used only when their input is given)
     The factors multiply in ``benefit_matrix``'s order, so the sums are the same to the last bit; what
     does not depend on the camera (hysteresis weights, accuracy below the pixel cap) is computed once per row,
@@ -221,9 +222,12 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
             out[i, k] = 0.0
         orig = 0.0
         if accuracy_mode == ACCURACY_ZACH:
-            orig = np.float64(faces[i, 0])
-            for k in range(1, kk):
-                orig = max(orig, np.float64(faces[i, k]))
+            if original.shape[0] > 0:
+                orig = np.float64(original[i])
+            else:
+                orig = np.float64(faces[i, 0])
+                for k in range(1, kk):
+                    orig = max(orig, np.float64(faces[i, k]))
             orig = max(orig, 1.0)
         elif accuracy_mode == ACCURACY_FS:
             for k in range(kk):
@@ -328,7 +332,7 @@ def compile_all() -> None:
     for f_dtype in (np.int64, np.int32):
         f = np.ones((2, 3), f_dtype)
         for moving in (np.ones(2, bool), np.zeros(2, bool)):
-            benefit_sum(size, offset, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_FS, True, wh, 0.3, 0.5,
-                        0.05, rows, 0.1, 0.1, out)
-            benefit_sum(size, empty2, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_FS, True, empty1, 0.3,
-                        0.5, 0.05, np.zeros(0, np.int64), 0.1, 0.1, out)
+            benefit_sum(size, offset, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_FS, empty1, True, wh, 0.3,
+                        0.5, 0.05, rows, 0.1, 0.1, out)
+            benefit_sum(size, empty2, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_ZACH, wh, True, empty1,
+                        0.3, 0.5, 0.05, np.zeros(0, np.int64), 0.1, 0.1, out)

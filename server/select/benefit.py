@@ -14,7 +14,7 @@ option k is level k // R with algorithm k % R (see ``solvers.candidates``).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -24,9 +24,12 @@ __all__ = [
     "ALGORITHM_EXPONENT",
     "ALGORITHM_SAMPLES",
     "MIN_FACTOR",
+    "ACCURACY_MODES",
+    "resolved_accuracy",
     "accuracy",
     "algorithm_accuracy",
     "zach_accuracy",
+    "original_faces",
     "importance",
     "importance_table",
     "focus",
@@ -49,6 +52,9 @@ ALGORITHM_EXPONENT = {"flat": 1.0, "lit": 2.0, "textured": 2.0}
 #: What F&S count as Samples(L, R): polygons for flat shading, vertices for
 #: Gouraud (lit, textured); never more than the pixels covered.
 ALGORITHM_SAMPLES = {"flat": "faces", "lit": "vertices", "textured": "vertices"}
+
+#: ``BenefitFactors.accuracy`` values; "auto" lets the view choose (``resolved_accuracy``).
+ACCURACY_MODES = ("auto", "fs", "zach", "off")
 
 #: The floor of every qualitative factor: a multiplier in (0, 1] never reaches 0.
 MIN_FACTOR = 1e-3
@@ -106,6 +112,42 @@ def zach_accuracy(screen_size: np.ndarray, faces: np.ndarray, original_faces: np
     f = np.maximum(np.asarray(faces, np.float64), 1.0)
     o = np.maximum(np.asarray(original_faces, np.float64), 1.0)
     return np.maximum(1.0, s / o) / np.maximum(1.0, s / f)
+
+
+def original_faces(finest: np.ndarray, parent: np.ndarray | None = None) -> np.ndarray:
+    """(n,) float64 Zach's #originalFaces per row: the full-detail faces of the part of the scene it stands for.
+
+    finest : (n,) faces of each row's finest level
+    parent : (n,) parent row, −1 for roots (a hierarchy), or None (independent chains: ``finest``)
+    A hierarchy node stands for its subtree: the sum of its leaves' finest faces
+    (never less than its own finest level). Summed bottom-up one tree depth at a
+    time (a ``bincount`` per depth), not per node.
+    """
+    finest = np.asarray(finest, np.float64).reshape(-1)
+    if parent is None:
+        return finest.copy()
+    parent = np.asarray(parent, np.int64).reshape(-1)
+    n = finest.shape[0]
+    if parent.shape != (n,):
+        raise ValueError(f"parent must be ({n},) like finest; got {parent.shape}")
+    if np.any((parent < -1) | (parent >= n)):
+        raise ValueError(f"parent rows must be −1 (root) or in 0..{n - 1}")
+    depth = np.zeros(n, np.int64)
+    up = parent.copy()
+    alive = np.nonzero(up >= 0)[0]
+    while alive.size:  # every node walks up to its root at once: one pass per tree level
+        if depth[alive[0]] >= n:
+            raise ValueError("parent links form a cycle")
+        depth[alive] += 1
+        up[alive] = parent[up[alive]]
+        alive = alive[up[alive] >= 0]
+    has_parent = parent >= 0
+    leaf = np.bincount(parent[has_parent], minlength=n) == 0
+    total = np.where(leaf, finest, 0.0)
+    for d in range(int(depth.max(initial=0)), 0, -1):  # deepest first: a child is complete before it is added
+        rows = np.nonzero(depth == d)[0]
+        total += np.bincount(parent[rows], weights=total[rows], minlength=n)
+    return np.maximum(total, finest)
 
 
 # ----------------------------------------------------------------------------- qualitative factors
@@ -182,7 +224,8 @@ def hysteresis(
 class BenefitFactors:
     """Which factors of the F&S product are on, and how strongly each bites.
 
-    accuracy : "fs" (1 − 0.5/Samples^m), "zach" (face density) or "off"
+    accuracy : "fs" (1 − 0.5/Samples^m), "zach" (face density), "off", or "auto" (the default:
+        "zach" on the hierarchical view, "fs" on the flat one — see the module docstring)
     exponent : m per rendering algorithm name (F&S accuracy)
     *_strength / *_weight : slope of each qualitative factor; defaults are mild so that
     Size · Accuracy dominates (an object at the corner keeps 70 % of its benefit).
@@ -190,7 +233,7 @@ class BenefitFactors:
     """
 
     size: bool = True
-    accuracy: str = "fs"
+    accuracy: str = "auto"
     exponent: dict = field(default_factory=lambda: dict(ALGORITHM_EXPONENT))
     algorithm_names: tuple = ALGORITHMS
     importance: bool = True
@@ -204,8 +247,8 @@ class BenefitFactors:
     algorithm_weight: float = 0.1
 
     def __post_init__(self) -> None:
-        if self.accuracy not in ("fs", "zach", "off"):
-            raise ValueError(f"accuracy must be 'fs', 'zach' or 'off', got {self.accuracy!r}")
+        if self.accuracy not in ACCURACY_MODES:
+            raise ValueError(f"accuracy must be one of {ACCURACY_MODES}, got {self.accuracy!r}")
         for f in fields(self):
             v = getattr(self, f.name)
             if isinstance(v, float) or (isinstance(v, int) and not isinstance(v, bool)):
@@ -217,6 +260,20 @@ class BenefitFactors:
         missing = [a for a in self.algorithm_names if a not in self.exponent]
         if missing:
             raise ValueError(f"no accuracy exponent for algorithms {missing}")
+
+
+def resolved_accuracy(factors: BenefitFactors, hierarchical: bool = False) -> BenefitFactors:
+    """``factors`` with "auto" accuracy made concrete: "zach" for the hierarchical view, else "fs".
+
+    An explicit setting is returned unchanged. The resolved copies are kept on
+    ``factors`` (a session passes the same object every τ; validating a new one costs ~50 µs).
+    """
+    if factors.accuracy != "auto":
+        return factors
+    cache = vars(factors).setdefault("_resolved", {})
+    if hierarchical not in cache:
+        cache[hierarchical] = replace(factors, accuracy="zach" if hierarchical else "fs")
+    return cache[hierarchical]
 
 
 def benefit_matrix(
@@ -238,12 +295,14 @@ def benefit_matrix(
     size : (n,) pixels each object covers
     faces, vertices : (n, K) polygons / vertices of each option's level (option k: level k // R,
         algorithm k % R with R = ``algorithms``)
-    original_faces : (n,) full-detail polygons for Zach's accuracy (None: each row's largest ``faces``)
+    original_faces : (n,) full-detail polygons for Zach's accuracy (None: each row's largest ``faces``;
+        a hierarchy node's are its subtree's, ``original_faces``)
     object_class, importance_table : (n,) class id, (C,) weight per class — Importance
     offset : (n,) distance from the screen centre in [0, 1] — Focus
     speed : (n,) apparent screen speed, px/s — Motion (against each option's average polygon)
     previous : (n,) option drawn last time, −1 none — Hysteresis
-    A factor is skipped when switched off in ``factors`` or when its input is None.
+    A factor is skipped when switched off in ``factors`` or when its input is None; "auto" accuracy
+    is F&S's here (the selection resolves it per view, ``resolved_accuracy``).
     """
     size = np.asarray(size, np.float64)
     faces = np.asarray(faces, np.float64)
@@ -254,7 +313,7 @@ def benefit_matrix(
     out = np.ones(faces.shape, np.float64)
     if factors.size:
         out *= size[:, None]
-    if factors.accuracy == "fs":
+    if factors.accuracy in ("fs", "auto"):
         out *= algorithm_accuracy(size, faces, vertices, algorithms, factors.exponent, factors.algorithm_names)
     elif factors.accuracy == "zach":
         orig = faces.max(axis=1) if original_faces is None else np.asarray(original_faces, np.float64)

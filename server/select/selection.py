@@ -9,6 +9,11 @@ node, for Mason & Blake's solver) and the vegetation (tree groups, the continuou
 part of the mixed solver). What a session's selection remembers from one run to
 the next — the options drawn last time (hysteresis, frame coherence), the last
 view (motion), Feedback's threshold — is a ``Memory`` it owns.
+
+Accuracy by view (``BenefitFactors.accuracy = "auto"``, the default): the flat
+view uses F&S's, the hierarchical view Zach's with each node's #originalFaces
+the full-detail faces of its subtree (``Levels.original_faces``), so that
+splitting a coarse HLOD node pays while its faces are far fewer than its pixels.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import solvers
-from .benefit import BenefitFactors, benefit_matrix
+from .benefit import BenefitFactors, benefit_matrix, original_faces, resolved_accuracy
 from .camera import View, centre_offset, cull_boxes, cull_hierarchy, screen_size, screen_speed, widened
 from .cost import CostModel
 from .solvers.candidates import NO_LIMIT, Candidates, Limit
@@ -78,6 +83,32 @@ class Levels:
         """The flat view of a scene index: its triangle-mesh leaves (``SceneIndex.flat``)."""
         return cls.subset(index, np.nonzero(index.flat)[0])
 
+    def original_faces(self) -> np.ndarray:
+        """(n,) float64 Zach's #originalFaces per row, computed once per view (``benefit.original_faces``):
+        a chain's finest level's faces; in a hierarchy, a node's subtree leaves' finest faces summed."""
+        def make():
+            count = self.rep_count.astype(np.int64)
+            finest = np.where(count > 0, self.rep_faces[self.rep_first.astype(np.int64) + np.maximum(count, 1) - 1], 0)
+            return original_faces(finest, self.parent)
+
+        return _cached(self, "original_faces", make)
+
+    def depth(self) -> np.ndarray:
+        """(n,) int64 each row's depth in its hierarchy (0 for roots and for a view without one), computed once."""
+        def make():
+            depth = np.zeros(self.n, np.int64)
+            if self.parent is None:
+                return depth
+            up = self.parent.copy()
+            alive = np.nonzero(up >= 0)[0]
+            while alive.size:
+                depth[alive] += 1
+                up[alive] = self.parent[up[alive]]
+                alive = alive[up[alive] >= 0]
+            return depth
+
+        return _cached(self, "depth", make)
+
 
 @dataclass(frozen=True)
 class Scene:
@@ -94,9 +125,11 @@ class Scene:
         from server.scene.store import TREES
 
         trees = index.object_kind == TREES
+        hierarchy = Levels.subset(index, np.nonzero(~trees)[0], hierarchy=True)
+        hierarchy.original_faces(), hierarchy.depth()  # once per scene, not in the first τ
         return cls(
             flat=Levels.of(index),
-            hierarchy=Levels.subset(index, np.nonzero(~trees)[0], hierarchy=True),
+            hierarchy=hierarchy,
             vegetation=Levels.subset(index, np.nonzero(trees)[0]),
             importance=importance,
             n_objects=int(index.n_objects),
@@ -302,17 +335,21 @@ def _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms
     klass = lv.object_class[rows] if lv.object_class is not None and scene.importance is not None else None
     before, dts = _before(memory, cams)
     size, offset, speed = _project(lv, rows, cams, before, dts)
+    if lv.parent is not None:
+        size = _node_size(lv, rows, size)
     weight = np.array([cam.weight for cam in cams], np.float64)
+    original = lv.original_faces()[rows] if factors.accuracy == "zach" else None
     kern = _view_kernels()
     if kern is not None:
         benefit = _benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass,
-                                  scene.importance, previous)
+                                  scene.importance, previous, original)
     else:
         benefit = np.zeros(faces.shape)
         for j in range(len(cams)):
             benefit += weight[j] * benefit_matrix(
-                size[j], faces, algorithms=r, factors=factors, vertices=vertices, object_class=klass,
-                importance_table=scene.importance, offset=offset[j], speed=speed[j], previous=previous,
+                size[j], faces, algorithms=r, factors=factors, vertices=vertices, original_faces=original,
+                object_class=klass, importance_table=scene.importance, offset=offset[j], speed=speed[j],
+                previous=previous,
             )
         benefit = np.where(valid, benefit, 0.0)
     sampled = np.array([cam.sampled for cam in cams])
@@ -325,14 +362,54 @@ def _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms
     return mean_size, rep, valid, faces, benefit, cost, previous
 
 
-def _benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass, table, previous):
-    """``benefit_matrix`` summed over the cameras in one compiled pass (same factors, same arithmetic)."""
+def _node_size(lv: Levels, rows: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """(C, v) screen size of hierarchy nodes: a node's own box, but never more than its visible children's together.
+
+    A node stands for the objects below it, and its box also covers the gaps between them:
+    seen from inside a city the root's box fills the screen while its children's cover half
+    of it. Zach's screenSize(o) is the object's, so a split must not lose the gaps' pixels
+    (it made splitting the root worth nothing). Bottom-up one depth at a time over ``rows``
+    (visible rows: a visible node's parent is among them), every camera at once.
+    """
+    v = rows.size
+    c = size.shape[0]
+    local = np.full(lv.n, -1, np.int64)
+    local[rows] = np.arange(v)
+    up = lv.parent[rows]
+    parent = np.where(up >= 0, local[np.maximum(up, 0)], -1)
+    if not (parent >= 0).any():
+        return size
+    depth = lv.depth()[rows]
+    has_kids = np.bincount(parent[parent >= 0], minlength=v) > 0
+    out = size.copy()
+    kids = np.zeros((c, v))
+    base = (np.arange(c) * v)[:, None]
+    for d in range(int(depth.max()), 0, -1):
+        q = np.nonzero(depth == d)[0]  # final: their own children were summed in the previous pass
+        q = q[parent[q] >= 0]
+        kids += np.bincount((base + parent[q][None, :]).ravel(), weights=out[:, q].ravel(),
+                            minlength=c * v).reshape(c, v)
+        done = np.nonzero((depth == d - 1) & has_kids)[0]
+        out[:, done] = np.minimum(out[:, done], kids[:, done])
+    return out
+
+
+def _benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass, table, previous,
+                    original=None):
+    """``benefit_matrix`` summed over the cameras in one compiled pass (same factors, same arithmetic).
+
+    original : (v,) Zach's #originalFaces (``benefit_matrix``'s ``original_faces``), None: each row's most faces
+    """
     from .benefit import ALGORITHM_SAMPLES, importance
 
     names = factors.algorithm_names
     if r < 1 or r > len(names):
         raise ValueError(f"algorithms must be in 1..{len(names)}, got {r}")
-    mode = {"off": kern.ACCURACY_OFF, "fs": kern.ACCURACY_FS, "zach": kern.ACCURACY_ZACH}[factors.accuracy]
+    mode = {"off": kern.ACCURACY_OFF, "fs": kern.ACCURACY_FS, "auto": kern.ACCURACY_FS,
+            "zach": kern.ACCURACY_ZACH}[factors.accuracy]
+    orig = np.zeros(0) if original is None else np.ascontiguousarray(original, np.float64)
+    if orig.size and orig.shape != faces.shape[:1]:
+        raise ValueError(f"original faces must be ({faces.shape[0]},); got {orig.shape}")
     per_vertex = np.array([ALGORITHM_SAMPLES.get(names[a], "faces") == "vertices" for a in range(r)])
     exponent = np.array([float(factors.exponent[names[a]]) for a in range(r)])
     empty2 = np.zeros((0, 0))
@@ -344,7 +421,7 @@ def _benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r
     prev = (np.asarray(previous, np.int64) if factors.hysteresis and previous is not None
             else np.zeros(0, np.int64))
     out = np.empty(faces.shape)
-    kern.benefit_sum(size, off, spd, moving, weight, faces, vertices, valid, per_vertex, exponent, r, mode,
+    kern.benefit_sum(size, off, spd, moving, weight, faces, vertices, valid, per_vertex, exponent, r, mode, orig,
                      factors.size, imp, factors.focus_strength, factors.motion_strength, factors.frame_time, prev,
                      factors.level_weight, factors.algorithm_weight, out)
     return out
@@ -385,6 +462,9 @@ def select(
     object (``Choice.algorithm``); the hierarchical solver draws the first.
     ``pixel_scale`` turns box screen area into covered pixels for a fill-rate cost term.
 
+    ``factors`` with "auto" accuracy (the default) use Zach's accuracy on the
+    hierarchical view and F&S's on the flat one; an explicit accuracy applies to both.
+
     ``view`` is one camera, or an ``Interval`` of predicted cameras and the
     conservative one. ``margin_deg`` widens the field of view of the (sampled)
     cameras so that objects about to come into view are already selected.
@@ -394,6 +474,7 @@ def select(
     if isinstance(scene, Levels):
         scene = Scene(flat=scene, n_objects=int(scene.ids.max()) + 1 if scene.ids is not None and scene.n else scene.n)
     factors = _DEFAULT_FACTORS if factors is None else factors  # validating a new one each τ costs ~50 µs
+    factors = resolved_accuracy(factors, hierarchical=solver in HIERARCHICAL)
     solve = solvers.get(solver)
     cams = _cameras(view, margin_deg, t)
     if solver in HIERARCHICAL:
