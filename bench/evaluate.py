@@ -23,7 +23,7 @@ The methods (``METHODS``) and what a session does with them
 - ``predictive`` — Zach 2002: the hierarchical solver, selecting for the
   *predicted* camera path with the conservative camera, and geomorphing
   between levels.
-- ``mixed`` — Zach, Mantler & Karner 2002: hierarchical meshes plus the
+- ``mixed`` — Zach, Mantler & Karner 2002: meshes and terrain (the flat view, F&S accuracy) plus the
   continuous resolution of tree groups, predicted and morphed; only where the
   scene has tree groups.
 
