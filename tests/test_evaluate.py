@@ -265,3 +265,20 @@ def test_resolve_scene_says_what_is_wrong(tmp_path):
     broken.write_text("v 1 2\nf 1 2 9\n")
     with pytest.raises(ValueError, match="cannot build"):
         resolve_scene(broken, cache_dir=tmp_path / "cache")
+
+
+def test_a_scene_without_viewpoints_gets_stand_ins_for_a_and_c(denhaag_store) -> None:
+    from bench.evaluate import derive_viewpoints
+    from bench.scenarios import _visible_counts
+    from client.navigation import Tour
+    from server.scene.store import SceneStore
+
+    got = derive_viewpoints(denhaag_store, 20.0, 2.0)
+    assert set(got) == {"A", "C"} and all(2.0 <= t <= 20.0 for t, _ in got.values())
+    with SceneStore.open(denhaag_store) as s:
+        tour = Tour(list(s.index.tour))
+        ts = np.arange(2.5, 19.5 + 1e-9, 0.5)
+        counts = _visible_counts(s.index, tour.pose_at(ts), 60.0, (640, 360))
+    assert counts[list(ts).index(got["A"][0])] == counts.max()  # A: the most in view
+    assert derive_viewpoints(denhaag_store, 20.0, 2.0, missing=["C"]).keys() == {"C"}
+    assert derive_viewpoints(denhaag_store, 20.0, 2.0, missing=[]) == {}
