@@ -244,10 +244,11 @@ def bench_predict(
 
 def _cached_auditorium(quiet: bool) -> Path:
     """The auditorium store the benchmarks share, under ``DEFAULT_CACHE``; built (progress bar) if missing."""
+    from bench.evaluate import scene_version
     from server.scene.catalog import build_named
     from server.scene.store import SCHEMA_VERSION
 
-    store = DEFAULT_CACHE / f"auditorium-s0-v{SCHEMA_VERSION}.db"
+    store = DEFAULT_CACHE / f"auditorium-s0-v{SCHEMA_VERSION}{scene_version('auditorium')}.db"
     if not store.exists():
         store.parent.mkdir(parents=True, exist_ok=True)
         bar, tick = _progress_bar("building auditorium", quiet)

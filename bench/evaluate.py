@@ -511,12 +511,24 @@ def _quality_job(store: str, viewport: tuple, fov_y: float, spilled: str, every:
 # ---------------------------------------------------------------- scenes
 
 
+def scene_version(name: str) -> str:
+    """A named scene's generator version as a cache-key suffix ("-g2"), or "" for a scene without one."""
+    import importlib
+
+    try:
+        module = importlib.import_module(f"server.scene.generate.{name}")
+    except ImportError:
+        return ""
+    version = getattr(module, "VERSION", None)
+    return f"-g{version}" if version is not None else ""
+
+
 def resolve_scene(arg: str | Path, *, seed: int = 0, cache_dir: str | Path | None = None,
                   progress: Progress | None = None) -> tuple[Path, str]:
     """(store path, scene name) for what a user typed: a store, a named scene or a source file.
 
     A ``.db`` file is opened for its name. A named scene (demo, auditorium, denhaag, sthelens, megacity) is
-    built once into ``cache_dir/{name}-s{seed}-v{SCHEMA_VERSION}.db``. A user's CityJSON, glTF/GLB, OBJ,
+    built once into ``cache_dir/{name}-s{seed}-v{SCHEMA_VERSION}[-g{generator VERSION}].db``. A user's CityJSON, glTF/GLB, OBJ,
     PLY, USGS DEM, .npz or CityGML file is built once (with a generated orbit tour) into
     ``cache_dir/{stem}-{sha256[:16]}-v{SCHEMA_VERSION}.db``, keyed by its content, so an edited file builds
     anew. ``cache_dir`` defaults to ~/.cache/walkstream. ValueError says what was wrong with anything else.
@@ -542,7 +554,7 @@ def resolve_scene(arg: str | Path, *, seed: int = 0, cache_dir: str | Path | Non
             raise ValueError(f"no such scene store: {path}")
         return path, name_of(path)
     if is_named(text) and not path.exists():
-        target = cache / f"{text}-s{seed}-v{SCHEMA_VERSION}.db"
+        target = cache / f"{text}-s{seed}-v{SCHEMA_VERSION}{scene_version(text)}.db"
         if not target.exists():
             target.parent.mkdir(parents=True, exist_ok=True)
             build_named(text, target, seed=seed, progress=progress)

@@ -47,7 +47,7 @@ def denhaag_store(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def auditorium_store(tmp_path_factory) -> Path:
-    """The auditorium (``walkstream build auditorium``, seed 0): a hall of ≥ 400 detailed chairs, built once (~3 s)."""
+    """The auditorium (``walkstream build auditorium``, seed 0): 440 chairs, 2.5 M triangles, built once (~12 s)."""
     from server.scene.catalog import build_named
 
     path = tmp_path_factory.mktemp("scenes") / "auditorium.db"

@@ -100,20 +100,32 @@ def check_tour(idx) -> None:
 
 @pytest.fixture(scope="module")
 def auditorium(tmp_path_factory):
+    """A build of the auditorium with seed 0, the seed of the session's ``auditorium_store``: the determinism
+    test compares the two, so the module adds one build (~12 s) to a suite that makes the other anyway."""
     path = tmp_path_factory.mktemp("aud") / "auditorium.db"
-    summary = build_named("auditorium", path, seed=3)
+    summary = build_named("auditorium", path, seed=0)
     return path, summary
 
 
 def test_auditorium_is_funkhouser_and_sequins_test(auditorium) -> None:
+    """440 copies of one detailed chair whose chain halves it down to a few dozen triangles; 2.5 M in all."""
+    from server.scene.generate.auditorium import ROWS, SEATS_PER_ROW, chair_mesh
+
     path, summary = auditorium
+    chair_faces = chair_mesh().n_faces
     with SceneStore.open(path) as store:
         idx = store.index
         chairs = np.nonzero(idx.object_class == idx.class_names.index("chair"))[0]
-        assert chairs.size >= 400 and (idx.rep_count[chairs] >= 4).all()
-        assert summary["triangles"] >= 100_000
+        assert chairs.size == ROWS * SEATS_PER_ROW >= 400
         full = idx.rep_first + idx.rep_count - 1
-        assert int(idx.rep_faces[full].sum()) == summary["triangles"]
+        assert (idx.rep_faces[full[chairs]] == chair_faces).all() and chair_faces >= 5000
+        assert summary["triangles"] >= 2_200_000 and int(idx.rep_faces[full].sum()) == summary["triangles"]
+        # Every chair's chain is the same sensible one: ≥ 6 levels, each about half the next finer one.
+        levels = idx.rep_count[chairs]
+        assert (levels == levels[0]).all() and levels[0] >= 6
+        counts = idx.rep_faces[idx.rep_first[chairs][:, None] + np.arange(levels[0])]
+        halving = counts[:, :-1] / counts[:, 1:]
+        assert ((halving > 0.4) & (halving <= 0.6)).all()
         vp = idx.meta["viewpoints"]
         assert set(vp) == {"A", "B", "C"} and all(0 < t < idx.tour[-1]["t"] for t in vp.values())
         check_tour(idx)
@@ -121,16 +133,18 @@ def test_auditorium_is_funkhouser_and_sequins_test(auditorium) -> None:
         check_chains(store, np.nonzero(idx.object_class != idx.class_names.index("chair"))[0][:10])
 
 
-def test_auditorium_is_deterministic(auditorium, tmp_path) -> None:
+def test_auditorium_is_deterministic(auditorium, auditorium_store) -> None:
+    """Two builds with one seed (this module's and the session's) hold the same counts, errors, boxes, tour,
+    geometry and morph payloads."""
     path, _ = auditorium
-    again = tmp_path / "again.db"
-    build_named("auditorium", again, seed=3)
-    with SceneStore.open(path) as a, SceneStore.open(again) as b:
+    with SceneStore.open(path) as a, SceneStore.open(auditorium_store) as b:
         np.testing.assert_array_equal(a.index.rep_faces, b.index.rep_faces)
+        np.testing.assert_array_equal(a.index.rep_error, b.index.rep_error)
         np.testing.assert_array_equal(a.index.object_lo, b.index.object_lo)
         assert a.index.tour == b.index.tour
         reps = list(range(0, a.index.n_representations, 97))
         assert a.geometries(reps) == b.geometries(reps)
+        assert a.morphs(reps[1:]) == b.morphs(reps[1:])
 
 
 def test_denhaag_buildings_hlod_terrain_and_trees(tmp_path) -> None:
