@@ -390,3 +390,15 @@ def test_real_frames_from_the_renderer():
     assert online <= 1.3 * np.median(hindsight[40:]) + 0.01 and online < 0.35
     rep = model.report()
     assert rep["frames"] == n and rep["chosen"] in MODELS
+
+
+def test_an_uncalibrated_model_budgets_for_its_tail_until_it_has_seen_frames() -> None:
+    """Before ``least`` frames the tail ratio is the cap (the first selection of a heavy scene is otherwise its
+    worst frames); once frames that the model predicts well arrive, it falls back toward 1."""
+    model = OnlineCostModel(algorithms=1, c_vertex=1e-7)
+    assert model.tail_ratio(cap=1.5) == 1.5
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        v = float(rng.uniform(1e4, 1e5))
+        model.update(1e-7 * v * float(rng.uniform(0.99, 1.01)), int(v))
+    assert 1.0 <= model.tail_ratio(cap=1.5) < 1.2

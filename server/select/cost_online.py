@@ -400,9 +400,11 @@ class OnlineCostModel:
 
         A budget divided by it makes the q-th percentile frame, not the average one, meet the target:
         the machine's own noise (a shared CPU, a driver's stalls) is then part of what is budgeted.
-        1 until ``least`` frames are known; at most ``cap`` so one stalled stretch cannot starve the picture."""
+        ``cap`` until ``least`` frames are known — an uncalibrated model is as likely to under- as to
+        overestimate, and the first selection of a heavy scene is otherwise its worst frames; at most ``cap``
+        afterwards, so one stalled stretch cannot starve the picture."""
         if len(self._ratios) < least:
-            return 1.0
+            return float(cap)
         return float(np.clip(np.quantile(np.fromiter(self._ratios, float), q), 1.0, cap))
 
     def update(self, time: float, vertices: int) -> bool:
