@@ -3,27 +3,28 @@
 The paper's auditorium held 87,565 polygons, most of them in hundreds of copies
 of one chair; drawn in full (method None) it took 0.43 s per frame against a
 0.1 s target — 4.3× the target on average, 9.9× at worst (FORMULAS.md, Table 1).
-What this scene reproduces is that *ratio*, not the polygon count: a machine
-that draws the paper's 87k polygons in a few milliseconds would never let a
-budget bind. So the hall (floor, raked seating tiers, walls, ceiling, stage,
-a few props) holds 20 rows × 22 copies of one 3,736-triangle chair (1.64 M
-triangles in all), which on this project's machine — Mesa llvmpipe on 2 cores,
-640×360 — costs about what the paper's did against a 50 ms target: drawn in
-full at the tour's poses, one frame each 1 s of the tour, 0.21 s on average
-(4.1×), 0.41 s at A and 0.52 s at worst (10×); at B, 0.04 s. (Measured
-untimed-path, no server; the real client over the real server sees the same
-costs, but as it runs in wall-clock time it spends far more of its frames in
-the cheap stretch round B, so its per-frame mean is lower: see the notes of
-issue 8.)
+This scene reproduces that *ratio*, not the polygon count: with a 250-triangle
+chair (110k triangles, this module's VERSION 1) Mesa's llvmpipe on 2 cores drew
+the whole tour in full at 640×360 in 1.3× a 50 ms target on average, so no
+budget bound. The hall (floor, raked seating tiers, walls, ceiling, stage, a few
+props) now holds 20 rows × 22 copies of one 5,632-triangle chair, 2.48 M
+triangles in all. Drawn in full by the real client over the real server
+(solver ``none``, 640×360, unpaced), a frame costs on average over the tour
+about 0.19 s on an idle machine (3.9× a 50 ms target; interpolated between
+idle runs at 250 and 3,736 triangles a chair) and 0.25–0.27 s with one other
+busy process (5×); 0.36 s at A, up to 0.9 s with the whole hall in view, 15 ms
+at B. "On average over the tour" weights each frame by how long it lasted — F&S
+sampled their path evenly; a client in wall-clock time draws most of its frames
+in the cheap stretch round B, so its plain per-frame mean is 1.5× the target.
 
 The chair is eighteen separate closed parts — turned legs with bevelled feet,
 a domed cushion with a rolled front edge, five curved slats, posts and rails
-following the back's curve, armrests with rounded ends on turned supports — so
+following the back's curve, armrests with domed ends on turned supports — so
 quadric decimation has real detail to take away: the builder's chain halves it
-seven times (3,736 → 28 triangles). Its four finest levels (down to 466) are
-whole chairs, each within 2 cm of full detail; below that the simplifier drops
-whole parts (the coarsest are a seat and scraps), levels only far chairs or a
-budget below the whole hall's cost should use.
+seven times (5,632 → 44 triangles). The four finest levels
+(down to 704) are whole chairs within 1.2 cm of full detail, 352 is a chair
+without its slats (8 cm); below that the simplifier drops whole parts — levels
+for far chairs and for budgets below the cost of the whole hall at 352.
 
 The tour passes the paper's three viewpoints: **A** at the front rows, looking
 across many large, complex chairs; **B** in a stage corner looking up at bare
@@ -46,7 +47,7 @@ from server.scene.source import Mesh, SourceObject, SourceScene
 __all__ = ["auditorium", "chair_mesh", "VERSION", "ROWS", "SEATS_PER_ROW"]
 
 #: Bumped when the scene changes, so cached stores built from an older one are rebuilt.
-#: 2: the 3,736-triangle chair (1: 248 triangles, 110k in all).
+#: 2: the 5,632-triangle chair, 2.48 M triangles (1: 248 triangles, 110k in all).
 VERSION = 2
 
 ROWS = 20
@@ -177,11 +178,11 @@ def _arc_y(x: np.ndarray) -> np.ndarray:
 
 
 def chair_mesh() -> Mesh:
-    """The chair model (3,736 triangles), seat front toward −y, feet at z = 0, centred on x = y = 0.
+    """The chair model (5,632 triangles), seat front toward −y, feet at z = 0, centred on x = y = 0.
 
     Eighteen separate closed parts: four turned legs with bevelled feet, a domed cushion with a rolled
     front edge, five slats, two posts and two rails following the back's curve (bowed seen from above,
-    leaning back with a lumbar bulge seen from the side), two armrests with rounded ends on turned
+    leaning back with a lumbar bulge seen from the side), two armrests with domed ends on turned
     supports. Triangles are densest where the surface bends, which is what decimation takes first.
     """
     parts: list[trimesh.Trimesh] = []
