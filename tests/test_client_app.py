@@ -76,7 +76,10 @@ class Recorder:
 
 
 def _serve(recorder: Recorder) -> Iterator[tuple[Recorder, str]]:
-    srv: Server = serve(recorder.handler, "127.0.0.1", 0)
+    # No flow control on the test server's side: a handler that closes while an uncapped client streams
+    # reports would otherwise stop reading at the queue's high-water mark and never read the client's
+    # close frame (websockets' sync close then times out after 10 s).
+    srv: Server = serve(recorder.handler, "127.0.0.1", 0, max_queue=None)
     thread = threading.Thread(target=srv.serve_forever, daemon=True)
     thread.start()
     try:

@@ -66,7 +66,9 @@ def test_first_camera_is_answered_at_once_then_on_the_pipeline(scenes):
     (delta,) = _deltas(s.poll(1.0))
     assert isinstance(delta, Delta) and delta.seq == 1 and delta.reset
     assert delta.selection and {a.rep for a in delta.add} == set(delta.selection)
-    assert delta.predicted_cost <= delta.budget == 0.05
+    # Before it has seen a frame the cost model budgets for its tail (the cap, 1.5): the first selection of a
+    # heavy scene is otherwise its worst frames; the fixed overhead is not known yet either.
+    assert delta.predicted_cost <= delta.budget == pytest.approx(0.05 / 1.5)
     due = s.next_deadline()
     assert due > 1.0 + 0.5 * s.config.tau  # the next selection waits for its slot ...
     assert _deltas(s.poll(due - 0.01)) == []
