@@ -611,3 +611,24 @@ def test_frustum_culling_leaves_out_unseen_reps_without_changing_the_image() -> 
         # Looking along one axis from the middle of a cube of spheres, most of them are out of view.
         assert culled.culled > n // 2 and culled.draws == n - culled.culled
         assert culled.triangles == 80 * culled.draws and culled.pixels == everything.pixels
+
+
+def test_culling_far_from_the_origin_keeps_every_rep_that_shows() -> None:
+    """The sphere table is float32: 60 km out (St. Helens' extent), spheres grazing the frustum's edges
+    still count as seen — the image with culling is the image without it."""
+    ico = trimesh.creation.icosphere(1)
+    base = np.array([60_000.0, 250.0, -60_000.0])
+    rng = np.random.default_rng(11)
+    # Spheres scattered across the view and just past its edges, 20–60 m ahead (looking along −z).
+    offsets = np.column_stack([rng.uniform(-45, 45, 300), rng.uniform(-28, 28, 300), rng.uniform(-60, -20, 300)])
+    with Renderer(W, H) as r:
+        for i, off in enumerate(offsets):
+            r.upload(i, Geometry((ico.vertices * 0.5 + base + off).astype(np.float32), ico.faces.astype(np.uint32)))
+        reps = np.arange(len(offsets))
+        r.cull = False
+        everything = r.draw(reps, base, np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0]), 0.1, 500.0)
+        expected = r.read_image()
+        r.cull = True
+        culled = r.draw(reps, base, np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0]), 0.1, 500.0)
+        np.testing.assert_array_equal(r.read_image(), expected)
+        assert 0 < culled.culled < len(offsets) and culled.pixels == everything.pixels
