@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from bench.report import (
+    bound_frames,
     COLUMNS,
     checks,
     pareto,
@@ -314,3 +315,38 @@ def test_bad_target_is_a_clear_error(tmp_path):
         table1({"runs": []})
     with pytest.raises(ValueError, match="target"):
         write_report({"target_ms": -5, "runs": []}, tmp_path)
+
+
+def _frames(t, ms):
+    t = np.asarray(t, float)
+    return {"t": t.tolist(), "time_ms": list(map(float, ms)), "seq": [1] * t.size}
+
+
+def test_bound_frames_judge_methods_where_full_detail_exceeds_the_target():
+    """A cheap stretch (full detail under the target, t in [10, 20)) where every method draws fast frames
+    is left out of the bound std; where full detail is dear, a method holding the budget is steady."""
+    t = np.arange(2.0, 30.0, 0.05)
+    cheap = (t >= 10) & (t < 20)
+    none = np.where(cheap, 15.0, 200.0)
+    steady = np.where(cheap, 5.0, 48.0 + np.sin(t))  # holds the budget where it binds, nothing to draw elsewhere
+    wild = np.where(cheap, 10.0, 50.0 + 20 * np.sin(3 * t))  # follows the scene
+    results = {"scene": "s", "target_ms": 50.0, "warmup_s": 2.0, "methods": ["none", "static", "optimization"],
+               "runs": [{"method": "none", "target_ms": 50.0, "frames": _frames(t, none), "summary": {}},
+                        {"method": "static", "target_ms": 50.0, "frames": _frames(t, wild), "summary": {}},
+                        {"method": "optimization", "target_ms": 50.0, "frames": _frames(t, steady),
+                         "summary": {"frame_std_ms": float(steady[t >= 2].std())}}]}
+    bound = bound_frames(results)
+    opt = bound["methods"]["optimization"]
+    assert bound["share"] == pytest.approx(1 - cheap.mean(), abs=0.01)
+    assert opt["frames"] == int((~cheap).sum()) and opt["frame_max_ms"] <= 49.0
+    assert opt["frame_std_ms"] == pytest.approx(steady[~cheap].std())
+    assert bound["methods"]["static"]["frame_std_ms"] == pytest.approx(wild[~cheap].std())
+    cs = _by_name(checks(results))
+    assert cs["opt_std_bound_vs_static"]["passed"] is True and "% of optimization's" in cs["opt_std_bound_vs_static"]["line"]
+    assert cs["opt_std_bound_vs_feedback"]["passed"] is None  # no feedback run
+    # The whole-path std, F&S's own, fails on the same runs: the cheap stretch dominates it.
+    results["runs"][1]["summary"]["frame_std_ms"] = float(wild[t >= 2].std())
+    assert _by_name(checks(results))["opt_std_vs_static"]["passed"] is False
+    # Without a none run there is nothing to tell the stretches apart by.
+    results["runs"] = results["runs"][1:]
+    assert bound_frames(results) is None and _by_name(checks(results))["opt_std_bound_vs_static"]["passed"] is None
