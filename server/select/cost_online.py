@@ -37,6 +37,11 @@ __all__ = ["RobustRLS", "OnlineCostModel", "MODELS"]
 MODELS = ("vertex", "draw", "stages")
 #: Prior spread of the secondary terms (c0, C1, C0, c_splat) as a share of the frame they alone could explain.
 SECONDARY = 0.25
+#: A detected change rescales the coefficients that explain at least this share of the surprising frame.
+RESCALE_SHARE = 0.05
+#: A regime change: the chosen model off by more than REGIME_ERROR (relative) on each of the last REGIME_FRAMES
+#: frames, and by more than REGIME_RATIO × another model's error on each, switches to the best at once.
+REGIME_FRAMES, REGIME_ERROR, REGIME_RATIO = 2, 0.3, 3.0
 #: Frames a side of the stages model is "young": over-predicting the whole frame, it is scaled down to it.
 YOUNG = 10
 
@@ -114,9 +119,12 @@ class RobustRLS:
         self.P[:, index] = 0.0
         self.P[index, index] = self.cap
 
-    def update(self, x: np.ndarray, y: float) -> float:
+    def update(self, x: np.ndarray, y: float, rescale: np.ndarray | None = None) -> float:
         """Fold in one row (x, y > 0); returns its relative residual before the update. O(k²).
 
+        ``rescale``: (k,) bool, the coordinates a detected change rescales (default: those explaining at least
+        ``RESCALE_SHARE`` of the frame) — a caller that masks terms out of the row (one side of a max) names
+        the masked ones that still share in the frame's cost.
         A row that would make the state non-finite (absurd magnitudes) is dropped: returns nan."""
         with np.errstate(over="ignore", invalid="ignore"):
             b = np.asarray(x, np.float64) * self.scale / y
@@ -138,25 +146,39 @@ class RobustRLS:
             elif side:  # only the surprising frames of the excursion say by how much the machine changed
                 ratios.append(ratio)
         change = max(self._hi, self._lo) > self.threshold
+        # Each term's share of this frame: b_j · φ_j is the part of the frame its coefficient explains (at the
+        # prior's magnitude at least, so a coefficient projected to 0 can still be re-learnt).
+        share = np.minimum(np.abs(b) * np.maximum(self.phi, 1.0), 1.0)
         if change:
-            # A machine that got slower (or faster) is so at everything first: rescale every coefficient
-            # by the measured/predicted ratio the last frames of the excursion all agree on (the one
-            # nearest 1, so a spike among them does not set it) and let the data refine them. Both sides of
-            # a max-of-stages model move, not only the one that happens to be the larger.
+            # A machine that got slower (or faster) is so at everything these frames do: rescale the
+            # coefficients by the measured/predicted ratio the last frames of the excursion all agree on
+            # (the one nearest 1, so a spike among them does not set it) — those that explain at least
+            # ``RESCALE_SHARE`` of the frame: near-empty frames say nothing of the cost per vertex — and let
+            # the data refine them. Both
+            # sides of a max-of-stages model move, not only the one that happens to be the larger.
             ratios = np.array(self._up if self._hi > self._lo else self._down)
             if ratios.size:
-                self.phi *= float(np.clip(ratios[np.argmin(np.abs(np.log(ratios)))], 0.1, 10.0))
+                ratio = float(np.clip(ratios[np.argmin(np.abs(np.log(ratios)))], 0.1, 10.0))
+                if rescale is None:
+                    part = b * self.phi
+                    rescale = part >= RESCALE_SHARE * max(float(part.sum()), 1e-300)
+                self.phi[rescale] *= ratio
             self._hi = self._lo = 0.0
             self._up.clear()
             self._down.clear()
             e, w = 1.0 - float(b @ self.phi), 1.0
             self.changes += 1
-        lam = self.forgetting
+        # Forgetting per coordinate, at the rate the frame informs it (vector forgetting): a term the frames
+        # do not exercise keeps what it knew. With one λ for all, twelve seconds of near-empty frames (the
+        # auditorium's stage) let the per-vertex cost random-walk on their noise, and the hall's first frames
+        # after came in at 2–3× the prediction.
+        inflate = 1.0 / np.sqrt(1.0 - (1.0 - self.forgetting) * share)
+        self.P *= np.outer(inflate, inflate)
         pb = self.P @ b
-        g = w * pb / (lam + w * float(b @ pb))
+        g = w * pb / (1.0 + w * float(b @ pb))
         self.phi += g * e
         self.P -= np.outer(g, pb)
-        self.P = (self.P + self.P.T) * (0.5 / lam)  # kept exactly symmetric
+        self.P = (self.P + self.P.T) * 0.5  # kept exactly symmetric
         if change:
             self.P[np.diag_indices(self.k)] += self.reopen * self.cap
         d = np.diag(self.P)
@@ -276,10 +298,16 @@ class _Rung:
                 # the non-negative projection would hand the frame to c0.
                 self.rls.phi[fil if fill else geo] *= t / max(g, f)
                 self._full = None
+            # A change rescales both sides (a machine slower at geometry is slower at fill too): every term
+            # with a share of the whole, unmasked frame.
+            part = x * c[self.cols]
+            rescale = part >= RESCALE_SHARE * max(float(part[[0, *range(1, 1 + 2 * r), -2, -1]].sum()), 1e-300)
             x = x.copy()
             x[geo if fill else fil] = 0.0
+        else:
+            rescale = None
         self.fill.append(fill)
-        self.rls.update(x, t)
+        self.rls.update(x, t, rescale)
         self._full = None
         c = self.full()
         self._num = self._lam * self._num + _frame(c, z, self.r) - c[0]
@@ -430,6 +458,14 @@ class OnlineCostModel:
     def _select(self) -> None:
         if self.frames < self.min_frames:
             target = "vertex"
+        elif self._regime_change():
+            # The chosen model fails outright on the last frames while another predicts them: the scene's
+            # regime changed (back in the hall after the empty stage, where every model fitted the overhead
+            # alike and the simplest was kept). Take the best of those frames now, not after the hold — the
+            # next selection is priced by it.
+            last = self.scores(REGIME_FRAMES)
+            self.chosen, self._count = min(last, key=last.get), 0
+            return
         else:
             recent, whole = self.scores(), self.scores(self.window)
             limit, limit_whole = (1.0 + self.within) * min(recent.values()), (1.0 + self.within) * min(whole.values())
@@ -450,6 +486,20 @@ class OnlineCostModel:
         self._pending = target
         if self._count >= self.hold:
             self.chosen, self._count = target, 0
+
+    def _regime_change(self) -> bool:
+        """The chosen model's held-out error on each of the last ``REGIME_FRAMES`` frames is over
+        ``REGIME_ERROR`` and over ``REGIME_RATIO`` × another model's."""
+        mine = list(islice(self.rungs[self.chosen].errors, max(0, len(self.rungs[self.chosen].errors) - REGIME_FRAMES),
+                           None))
+        if len(mine) < REGIME_FRAMES or min(mine) <= REGIME_ERROR:
+            return False
+        for name, rung in self.rungs.items():
+            theirs = list(islice(rung.errors, max(0, len(rung.errors) - REGIME_FRAMES), None))
+            if name != self.chosen and len(theirs) == REGIME_FRAMES and all(
+                    a > REGIME_RATIO * b for a, b in zip(mine, theirs)):
+                return True
+        return False
 
     def _worse(self, a: str, b: str) -> bool:
         """Whether model a's recent held-out errors are above b's beyond the noise: a paired t > 1.5 over the
