@@ -55,7 +55,9 @@ class RobustRLS:
 
     mean, scale : (k,) prior coefficients and their prior standard deviation (> 0). Internally
         φ = θ / scale, so rows are O(1) whatever the units (1e-7 s per vertex, 1e-3 s per frame).
-    forgetting : λ in (0, 1]; a frame weighs λ^age — memory ≈ 1 / (1 − λ) frames.
+    forgetting : λ in (0, 1]; a frame weighs λ^age — memory ≈ 1 / (1 − λ) frames — for the terms that explain
+        all of it: each term forgets at 1 − (1 − λ)·share, its share of the frame (vector forgetting), so a
+        term the frames do not exercise keeps what it knew.
     noise : the relative residual the prior is weighed against: P = Cov / noise² starts at
         I / noise² (the prior's own uncertainty) and no coordinate's variance may exceed it, so a
         direction no frame excites (an algorithm never drawn) stays at its prior instead of growing
@@ -153,9 +155,9 @@ class RobustRLS:
             # A machine that got slower (or faster) is so at everything these frames do: rescale the
             # coefficients by the measured/predicted ratio the last frames of the excursion all agree on
             # (the one nearest 1, so a spike among them does not set it) — those that explain at least
-            # ``RESCALE_SHARE`` of the frame: near-empty frames say nothing of the cost per vertex — and let
-            # the data refine them. Both
-            # sides of a max-of-stages model move, not only the one that happens to be the larger.
+            # ``RESCALE_SHARE`` of the frame, as near-empty frames say nothing of the cost per vertex — and
+            # let the data refine them. Both sides of a max-of-stages model move (the caller's ``rescale``),
+            # not only the one that happens to be the larger.
             ratios = np.array(self._up if self._hi > self._lo else self._down)
             if ratios.size:
                 ratio = float(np.clip(ratios[np.argmin(np.abs(np.log(ratios)))], 0.1, 10.0))
@@ -365,7 +367,9 @@ class OnlineCostModel:
     not make "draw" enough); going up needs the chosen model's recent errors to be above the
     candidate's beyond the noise (paired over the same frames, t > 1.5: a model stuck below the machine's
     needs costs budget overruns, one above it only redundant terms); and a switch needs the same
-    answer window / 12 (5) frames in a row. Before ``min_frames`` frames: "vertex".
+    answer window / 12 (5) frames in a row — except on a regime change (``_regime_change``: the chosen
+    model off by over 30 % on two frames running, each time 3× another's), which takes the best of those
+    frames at once. Before ``min_frames`` frames: "vertex".
     """
 
     def __init__(self, algorithms: int = 3, c_vertex: float = 2e-7, forgetting: float = 0.97, within: float = 0.10,
