@@ -771,6 +771,14 @@ class Session:
     def close(self) -> None:
         self.state = SessionState.CLOSED
 
+    def _cost_report(self) -> dict:
+        """Why the online model is the one chosen, and its coefficients (issue 6: say which model and why)."""
+        report = getattr(self.cost, "report", None)
+        if report is None:
+            return {}
+        r = report()
+        return {"cost_why": r["why"], "cost_coefficients": r["models"][r["chosen"]]["coefficients"]}
+
     @property
     def stats(self) -> dict:
         return {
@@ -784,6 +792,7 @@ class Session:
             "cost_coeff": self.cost.c_vertex,
             "cost_updates": self.cost.updates,
             "cost_model": getattr(self.cost, "chosen", "zach"),
+            **self._cost_report(),
             "cost_overhead": float(getattr(self.cost, "overhead", 0.0)),
             "tail_ratio": getattr(self, "_tail", 1.0),
             "pixel_scale": self._pixel_scale,

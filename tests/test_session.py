@@ -89,6 +89,10 @@ def test_frame_reports_drive_the_cost_model(scenes):
     index = scenes[s.scene_name].index
     assert index.rep_vertices[second.selection].sum() * 1e-6 <= 0.05 * (1 + 1e-9)
     assert s.stats["frames"] == 30
+    # GET /sessions says which model prices the selection, why, and its coefficients.
+    stats = s.stats
+    assert stats["cost_why"].startswith(stats["cost_model"]) and stats["cost_coefficients"]
+    assert all(v >= 0 for c in stats["cost_coefficients"].values() for v in np.atleast_1d(c))
 
 
 def test_a_60_hz_client_is_folded_into_the_cost_model_at_observe_hz(scenes):
