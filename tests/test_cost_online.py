@@ -425,3 +425,23 @@ def test_a_stretch_of_near_empty_frames_does_not_unlearn_the_cost_per_vertex(mac
     # hall the ladder sees its regime change and takes the model that knows the cost per vertex.
     assert MODELS.index(chosen[2]) >= MODELS.index("draw")
     assert np.median(err[2:]) <= max(2.0 * np.median(before), 0.08), (np.median(err[2:]), np.median(before))
+
+
+def test_the_budget_tail_counts_only_frames_the_budget_is_about() -> None:
+    """Near-empty frames stray far from their prediction in relative terms (the overhead's noise is most of
+    them): with ``tail_min_time`` they do not set the tail ratio that divides the budget."""
+    rng = np.random.default_rng(1)
+
+    def feed(model: OnlineCostModel) -> None:
+        for i in range(300):
+            small = i % 2 == 0
+            v = 300.0 if small else float(rng.uniform(8e4, 1.2e5))
+            t = (3e-3 * rng.uniform(0.5, 1.6) if small else 0.0) + 3e-7 * v * rng.uniform(0.97, 1.03)
+            model.update(t, int(v))
+
+    everything, budgeted = OnlineCostModel(algorithms=1, c_vertex=3e-7), OnlineCostModel(algorithms=1, c_vertex=3e-7)
+    budgeted.tail_min_time = 0.0125  # a quarter of a 50 ms target
+    feed(everything)
+    feed(budgeted)
+    assert everything.tail_ratio(cap=3.0) > 1.4  # the empty frames' noise
+    assert budgeted.tail_ratio(cap=3.0) < 1.15  # the big frames are predicted within a few per cent

@@ -89,6 +89,7 @@ def test_frame_reports_drive_the_cost_model(scenes):
     index = scenes[s.scene_name].index
     assert index.rep_vertices[second.selection].sum() * 1e-6 <= 0.05 * (1 + 1e-9)
     assert s.stats["frames"] == 30
+    assert s.cost.tail_min_time == pytest.approx(0.25 * 0.05)  # the budget's tail: frames of its size
     # GET /sessions says which model prices the selection, why, and its coefficients.
     stats = s.stats
     assert stats["cost_why"].startswith(stats["cost_model"]) and stats["cost_coefficients"]

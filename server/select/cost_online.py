@@ -381,6 +381,9 @@ class OnlineCostModel:
         self.chosen = "vertex"
         self.frames = 0
         self._ratios: deque[float] = deque(maxlen=100)  # measured ÷ predicted by the chosen model, held out
+        #: Frames shorter than this, measured and predicted, do not count in ``tail_ratio`` (the session sets a
+        #: share of its target): on a near-empty view the overhead's noise is a large share of a small frame.
+        self.tail_min_time = 0.0
         self.recent = max(1, window // 3)
         self.hold = max(1, window // 12)
         self._pending, self._count = "vertex", 0
@@ -416,7 +419,7 @@ class OnlineCostModel:
         if cols[1].sum() + splats <= 0:
             return False
         predicted = _frame(self.rungs[self.chosen].full(), z, r)
-        if predicted > 0:
+        if predicted > 0 and max(predicted, time) >= self.tail_min_time:
             self._ratios.append(time / predicted)  # the chosen model's held-out ratio, for ``tail_ratio``
         for rung in self.rungs.values():
             rung.errors.append(abs(_frame(rung.full(), z, r) - time) / time)  # held out: before it learns
