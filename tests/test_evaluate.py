@@ -100,8 +100,11 @@ def test_summary_counts_frames_after_warmup_that_draw_and_each_selection_once():
         "reps": [0, 1, 2, 3, 4, 5, 6],
         "bytes": [0, 1000, 0, 200, 0, 0, 100],
     }
-    s = summarize_frames(frames, warmup=2.0)
+    s = summarize_frames(frames, warmup=2.0, target_ms=50.0)
     ms = np.array([40.0, 50.0, 60.0, 50.0, 40.0])
+    assert s["frame_p99_ms"] == pytest.approx(np.percentile(ms, 99))
+    assert s["over_pct"] == pytest.approx(20.0)  # one frame of five over 55 ms
+    assert summarize_frames(frames, warmup=2.0)["over_pct"] is None  # no target, no share
     assert s["frames"] == 5
     assert s["frame_mean_ms"] == pytest.approx(ms.mean())
     assert s["frame_max_ms"] == 60.0
