@@ -209,6 +209,11 @@ def test_below_coarsest_verdict():
     ok, line = below_coarsest_verdict(_below(**cut))
     assert ok and "coarsest cut" in line  # the same picture as the coarsest frame: its time is not judged
     assert not below_coarsest_verdict(_below(**{**cut, "p95_triangles": 1001}))[0]
+    # Increments its cost model prices free (a fill-bound raise) add triangles, not time: within 1.25 × the
+    # coarsest frame they pass, beyond it they do not.
+    ok, line = below_coarsest_verdict(_below(**{**cut, "p95_triangles": 2000, "median_ms": 12.5}))
+    assert ok and "cost 1.25 × the coarsest frame (limit 1.25)" in line
+    assert not below_coarsest_verdict(_below(**{**cut, "p95_triangles": 2000, "median_ms": 12.6}))[0]
     assert not below_coarsest_verdict(_below(**cut, errors=2))[0]
 
 
