@@ -445,3 +445,4 @@ def test_the_budget_tail_counts_only_frames_the_budget_is_about() -> None:
     feed(budgeted)
     assert everything.tail_ratio(cap=3.0) > 1.4  # the empty frames' noise
     assert budgeted.tail_ratio(cap=3.0) < 1.15  # the big frames are predicted within a few per cent
+

@@ -37,7 +37,8 @@ __all__ = ["RobustRLS", "OnlineCostModel", "MODELS"]
 MODELS = ("vertex", "draw", "stages")
 #: Prior spread of the secondary terms (c0, C1, C0, c_splat) as a share of the frame they alone could explain.
 SECONDARY = 0.25
-#: A detected change rescales the coefficients that explain at least this share of the surprising frame.
+#: A detected change rescales the coefficients that explain — or at their prior's magnitude would explain — at
+#: least this share of the surprising frame.
 RESCALE_SHARE = 0.05
 #: A regime change: the chosen model off by more than REGIME_ERROR (relative) on each of the last REGIME_FRAMES
 #: frames, and by more than REGIME_RATIO × another model's error on each, switches to the best at once.
@@ -162,8 +163,9 @@ class RobustRLS:
             if ratios.size:
                 ratio = float(np.clip(ratios[np.argmin(np.abs(np.log(ratios)))], 0.1, 10.0))
                 if rescale is None:
-                    part = b * self.phi
-                    rescale = part >= RESCALE_SHARE * max(float(part.sum()), 1e-300)
+                    # At the prior's magnitude at least: a term priced near 0 (splats before any were seen)
+                    # is the likeliest culprit of a frame it has a large part in, not one to spare.
+                    rescale = b * np.maximum(self.phi, 1.0) >= RESCALE_SHARE * max(float(b @ self.phi), 1e-300)
                 self.phi[rescale] *= ratio
             self._hi = self._lo = 0.0
             self._up.clear()
@@ -302,8 +304,9 @@ class _Rung:
                 self._full = None
             # A change rescales both sides (a machine slower at geometry is slower at fill too): every term
             # with a share of the whole, unmasked frame.
-            part = x * c[self.cols]
-            rescale = part >= RESCALE_SHARE * max(float(part[[0, *range(1, 1 + 2 * r), -2, -1]].sum()), 1e-300)
+            whole = x * c[self.cols]
+            rescale = x * np.maximum(c[self.cols], self.rls.scale) >= RESCALE_SHARE * max(
+                float(whole[[0, *range(1, 1 + 2 * r), -2, -1]].sum()), 1e-300)
             x = x.copy()
             x[geo if fill else fil] = 0.0
         else:
