@@ -376,7 +376,7 @@ def load_attrs(obj: Any, state: Any, names: tuple[str, ...], what: str, optional
 _ZACH = ("c_vertex", "alpha", "min_vertices", "updates", "algorithms", "c_poly", "c_vert", "c_pixel", "c_draw",
          "fitted")
 _ONLINE = ("algorithms", "within", "window", "min_frames", "recent", "hold", "chosen", "frames", "_pending",
-           "_count", "_faces", "_verts", "_lam")
+           "_count", "_faces", "_verts", "_lam", "least")
 _RUNG = ("seen", "errors", "fill", "sides", "_num", "_den", "_lam")
 _RLS = ("k", "forgetting", "huber", "floor", "reopen", "slack", "threshold", "clip", "cap", "scale", "phi", "P",
         "residuals", "updates", "changes", "_hi", "_lo", "_up", "_down")

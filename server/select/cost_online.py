@@ -45,6 +45,11 @@ RESCALE_SHARE = 0.05
 REGIME_FRAMES, REGIME_ERROR, REGIME_RATIO = 2, 0.3, 3.0
 #: Frames a side of the stages model is "young": over-predicting the whole frame, it is scaled down to it.
 YOUNG = 10
+#: No frame costs less than the fixed overhead c0, so c0 is bounded by the lightest frame measured — with a
+#: slack of LEAST_SLACK, as the overhead itself is noisy (the mean overhead of a stretch of empty frames is up
+#: to twice its lightest) — a bound that rises by LEAST_RISE a frame (doubling in ~700 frames, 20–60 s), as
+#: old evidence of a faster machine fades.
+LEAST_SLACK, LEAST_RISE = 2.0, 1e-3
 
 
 class RobustRLS:
@@ -89,6 +94,8 @@ class RobustRLS:
         self.cap = 1.0 / noise**2
         self.scale = scale
         self.phi = np.maximum(mean, 0.0) / scale
+        #: (k,) upper bounds on θ (inf: none); with θ ≥ 0 a box the projection keeps θ in.
+        self.upper = np.full(self.k, np.inf)
         self.P = np.eye(self.k) * self.cap
         self.residuals: deque[float] = deque(maxlen=window)
         self.updates = 0
@@ -189,7 +196,7 @@ class RobustRLS:
         if (d > self.cap).any():
             f = np.sqrt(self.cap / np.maximum(d, self.cap))
             self.P *= np.outer(f, f)
-        if (self.phi < 0).any():
+        if (self.phi < 0).any() or (self.theta > self.upper).any():
             self._project()
         if not (np.isfinite(self.phi).all() and np.isfinite(self.P).all()):
             self.phi, self.P, self._hi, self._lo = saved
@@ -199,20 +206,24 @@ class RobustRLS:
         return e0
 
     def _project(self) -> None:
-        """θ ≥ 0: the negative coordinates go to 0 and the others move by their conditional mean given
-        that (projection in the P⁻¹ metric), so a correlated term takes up what the clamped one explained
-        instead of the fit losing it (a plain clamp was much slower to converge on the stages model)."""
+        """0 ≤ θ ≤ upper: a coordinate out of the box goes to its bound and the others move by their
+        conditional mean given that (projection in the P⁻¹ metric), so a correlated term takes up what the
+        clamped one explained instead of the fit losing it (a plain clamp was much slower to converge on the
+        stages model)."""
+        hi = self.upper / self.scale
         active = np.zeros(self.k, bool)
+        bound = np.zeros(self.k)
         for _ in range(self.k):
-            neg = self.phi < 0
-            if not neg.any():
+            low, high = self.phi < 0, self.phi > hi
+            if not (low.any() or high.any()):
                 break
-            active |= neg
+            bound[low], bound[high] = 0.0, hi[high]
+            active |= low | high
             a = np.flatnonzero(active)
-            shift = np.linalg.lstsq(self.P[np.ix_(a, a)], self.phi[a], rcond=None)[0]
+            shift = np.linalg.lstsq(self.P[np.ix_(a, a)], self.phi[a] - bound[a], rcond=None)[0]
             self.phi -= self.P[:, a] @ shift
-            self.phi[a] = 0.0
-        np.maximum(self.phi, 0.0, out=self.phi)
+            self.phi[a] = bound[a]
+        np.clip(self.phi, 0.0, hi, out=self.phi)
 
 
 def _alg_scale(r: int) -> np.ndarray:
@@ -277,7 +288,10 @@ class _Rung:
         r = self.r
         return np.array([z[1 + r : 1 + 2 * r].sum() + z[-1]]) if self.cols is None else z[self.cols]
 
-    def observe(self, t: float, z: np.ndarray) -> None:
+    def observe(self, t: float, z: np.ndarray, least: float = math.inf) -> None:
+        """Fold in one frame; ``least`` bounds c0 (the lightest recent frame: no frame costs less)."""
+        if self.cols is not None:
+            self.rls.upper[0] = least
         x = self.row(z)
         fresh = (x > 0) & ~self.seen
         if fresh.any():
@@ -392,6 +406,11 @@ class OnlineCostModel:
         self._pending, self._count = "vertex", 0
         self._faces = self._verts = 0.0  # forgetful sums: faces per vertex, for ``predict`` (given no faces)
         self._lam = forgetting
+        #: The lightest frame measured (empty ones too), rising by LEAST_RISE a frame: c0 ≤ LEAST_SLACK × it. On a
+        #: tour whose frames all carry about the same load, c0 and the per-vertex cost are collinear and the
+        #: held-out error cannot tell a model that puts the frame in c0 (31 ms of 34, c_vert ≈ 0: seen on
+        #: the auditorium) from the right one, until the first larger selection costs 2.5× its prediction.
+        self.least = math.inf
 
     # ------------------------------------------------------------------ feeding it
 
@@ -419,6 +438,7 @@ class OnlineCostModel:
             return False  # no frame takes less than a nanosecond
         if ((z > 0) & (z < 1e-6)).any() or z.max() > 1e15:
             return False  # counts, not numerical dust (which would put a coefficient's scale at infinity)
+        self.least = min(time, self.least * (1.0 + LEAST_RISE))  # an empty frame is the overhead alone
         if cols[1].sum() + splats <= 0:
             return False
         predicted = _frame(self.rungs[self.chosen].full(), z, r)
@@ -426,7 +446,7 @@ class OnlineCostModel:
             self._ratios.append(time / predicted)  # the chosen model's held-out ratio, for ``tail_ratio``
         for rung in self.rungs.values():
             rung.errors.append(abs(_frame(rung.full(), z, r) - time) / time)  # held out: before it learns
-            rung.observe(time, z)
+            rung.observe(time, z, LEAST_SLACK * self.least)
         self._faces = self._lam * self._faces + cols[0].sum()
         self._verts = self._lam * self._verts + cols[1].sum()
         self.frames += 1
@@ -602,6 +622,7 @@ class OnlineCostModel:
                              if scores[n] > limit)
                    + (f"; {self._pending} asked for {self._count}/{self.hold} frames" if self._count else ""))
         return {"chosen": self.chosen, "why": why, "frames": self.frames, "within": self.within,
+                "least_frame": self.least if math.isfinite(self.least) else None,
                 "rule": f"simplest model whose mean held-out relative error over the last {self.recent} frames is "
                         f"≤ (1 + within) × the best's (going down: over the last {self.window} too; going up: the "
                         f"chosen one worse by a paired t > 1.5), asked for {self.hold} frames in a row",
