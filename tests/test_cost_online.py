@@ -490,3 +490,50 @@ def test_the_overhead_is_bounded_by_the_lightest_frame() -> None:
         z = np.concatenate([[1.0], v * 1.9, v, v * 3, [d.sum(), 0.0]])
         worst = min(worst, *(_frame(rung.full(), z, R) / truth for rung in model.rungs.values()))
     assert worst >= 0.88, worst  # unbounded, the draw model priced it at 0.81 of its cost (seed 0)
+
+
+def _stage_then_hall(tail_min_time: float, seed: int) -> dict:
+    """The hall (100k vertices, 300–450 draws) for 300 frames, the stage (300–3000 vertices) for 700 on a
+    renderer that costs a third as much per vertex at that load, then a selection 3× the hall's: each
+    model's predicted ÷ real cost of it."""
+    rng = np.random.default_rng(seed)
+    model = OnlineCostModel()
+    model.tail_min_time = tail_min_time
+    z3 = np.zeros(3)
+    model.observe(1e-3, z3, z3, z3, z3)
+    for _ in range(300):
+        v, d = np.array([0, 1e5, 0]) * rng.uniform(0.8, 1.2), np.array([0, rng.integers(200, 450), 0.0])
+        model.observe((3e-3 + 3e-7 * v.sum() + 5e-6 * d.sum()) * (1 + abs(rng.normal(0, 0.1))), v * 2, v, v * 3, d)
+    for _ in range(700):
+        v, d = np.array([0, 1.0, 0]) * rng.uniform(300, 3000), np.array([0, rng.integers(10, 60), 0.0])
+        model.observe((3e-3 + 1e-7 * v.sum() + 5e-6 * d.sum()) * rng.uniform(0.7, 2.0), v * 2, v, v * 3, d)
+    v, d = np.array([0, 3e5, 0]), np.array([0, 400.0, 0])
+    z = np.concatenate([[1.0], v * 2, v, v * 3, [d.sum(), 0]])
+    truth = 3e-3 + 3e-7 * v.sum() + 5e-6 * d.sum()
+    return {name: _frame(rung.full(), z, R) / truth for name, rung in model.rungs.items()}
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_light_frames_do_not_lower_the_price_of_work(seed):
+    """Twelve seconds of the auditorium's stage (frames far under the budget, on a renderer cheaper per
+    triangle at light loads) must not make the hall's next, heavier selection look cheap: on light frames
+    only c0 learns. Without ``tail_min_time`` the draw and stages models priced it at 0.5–0.8 of its cost."""
+    held = _stage_then_hall(0.0125, seed)
+    free = _stage_then_hall(0.0, seed)
+    assert min(held["draw"], held["stages"]) >= 0.95, held
+    assert min(free["draw"], free["stages"]) < 0.85, free  # what the hold prevents
+
+
+def test_a_model_pricing_work_too_high_still_learns_from_light_frames() -> None:
+    """Light frames hold the per-unit prices only where the model also predicted them light: a prior 20×
+    too high (a fast GPU) predicts every frame heavy, so it learns and comes down — else the budget would
+    stay unused for good."""
+    rng = np.random.default_rng(5)
+    model = OnlineCostModel(c_vertex=2e-6)
+    model.tail_min_time = 0.0125
+    for _ in range(300):
+        v, d = np.array([0, 2e4, 0]) * rng.uniform(0.8, 1.2), np.array([0, rng.integers(50, 100), 0.0])
+        model.observe((5e-4 + 1e-7 * v.sum() + 2e-6 * d.sum()) * (1 + abs(rng.normal(0, 0.05))), v * 2, v, v * 3, d)
+    v = np.array([0, 2e5, 0])
+    truth = 5e-4 + 1e-7 * v.sum() + 2e-6 * 100
+    assert model.predict_frame(v * 2, v, v * 3, np.array([0, 100.0, 0])) / truth < 1.3

@@ -94,8 +94,8 @@ class RobustRLS:
         self.cap = 1.0 / noise**2
         self.scale = scale
         self.phi = np.maximum(mean, 0.0) / scale
-        #: (k,) upper bounds on θ (inf: none); with θ ≥ 0 a box the projection keeps θ in.
-        self.upper = np.full(self.k, np.inf)
+        #: (k,) bounds on θ (0 and inf: none), a box the projection keeps θ in.
+        self.lower, self.upper = np.zeros(self.k), np.full(self.k, np.inf)
         self.P = np.eye(self.k) * self.cap
         self.residuals: deque[float] = deque(maxlen=window)
         self.updates = 0
@@ -196,7 +196,8 @@ class RobustRLS:
         if (d > self.cap).any():
             f = np.sqrt(self.cap / np.maximum(d, self.cap))
             self.P *= np.outer(f, f)
-        if (self.phi < 0).any() or (self.theta > self.upper).any():
+        theta = self.theta
+        if (theta < self.lower).any() or (theta > self.upper).any():
             self._project()
         if not (np.isfinite(self.phi).all() and np.isfinite(self.P).all()):
             self.phi, self.P, self._hi, self._lo = saved
@@ -206,24 +207,24 @@ class RobustRLS:
         return e0
 
     def _project(self) -> None:
-        """0 ≤ θ ≤ upper: a coordinate out of the box goes to its bound and the others move by their
-        conditional mean given that (projection in the P⁻¹ metric), so a correlated term takes up what the
-        clamped one explained instead of the fit losing it (a plain clamp was much slower to converge on the
-        stages model)."""
-        hi = self.upper / self.scale
+        """lower ≤ θ ≤ upper (lower ≥ 0): a coordinate out of the box goes to its bound and the others move by
+        their conditional mean given that (projection in the P⁻¹ metric), so a correlated term takes up what
+        the clamped one explained instead of the fit losing it (a plain clamp was much slower to converge on
+        the stages model)."""
+        lo, hi = np.maximum(self.lower, 0.0) / self.scale, self.upper / self.scale
         active = np.zeros(self.k, bool)
         bound = np.zeros(self.k)
         for _ in range(self.k):
-            low, high = self.phi < 0, self.phi > hi
+            low, high = self.phi < lo, self.phi > hi
             if not (low.any() or high.any()):
                 break
-            bound[low], bound[high] = 0.0, hi[high]
+            bound[low], bound[high] = lo[low], hi[high]
             active |= low | high
             a = np.flatnonzero(active)
             shift = np.linalg.lstsq(self.P[np.ix_(a, a)], self.phi[a] - bound[a], rcond=None)[0]
             self.phi -= self.P[:, a] @ shift
             self.phi[a] = bound[a]
-        np.clip(self.phi, 0.0, hi, out=self.phi)
+        np.clip(self.phi, lo, np.maximum(hi, lo), out=self.phi)
 
 
 def _alg_scale(r: int) -> np.ndarray:
@@ -288,10 +289,22 @@ class _Rung:
         r = self.r
         return np.array([z[1 + r : 1 + 2 * r].sum() + z[-1]]) if self.cols is None else z[self.cols]
 
-    def observe(self, t: float, z: np.ndarray, least: float = math.inf) -> None:
-        """Fold in one frame; ``least`` bounds c0 (the lightest recent frame: no frame costs less)."""
+    def observe(self, t: float, z: np.ndarray, least: float = math.inf, light: bool = False) -> None:
+        """Fold in one frame; ``least`` bounds c0 (no frame costs less than the overhead). On a ``light`` frame
+        (measured and predicted far under the budget) only c0 learns: the per-unit prices are held."""
+        rls = self.rls
         if self.cols is not None:
-            self.rls.upper[0] = least
+            rls.upper[0] = least
+        if light:
+            hold = np.arange(1 if self.cols is not None else 0, rls.k)
+            rls.lower[hold] = rls.upper[hold] = rls.theta[hold]
+        try:
+            self._observe(t, z)
+        finally:
+            if light:
+                rls.lower[hold], rls.upper[hold] = 0.0, np.inf
+
+    def _observe(self, t: float, z: np.ndarray) -> None:
         x = self.row(z)
         fresh = (x > 0) & ~self.seen
         if fresh.any():
@@ -400,6 +413,11 @@ class OnlineCostModel:
         self._ratios: deque[float] = deque(maxlen=100)  # measured ÷ predicted by the chosen model, held out
         #: Frames shorter than this, measured and predicted, do not count in ``tail_ratio`` (the session sets a
         #: share of its target): on a near-empty view the overhead's noise is a large share of a small frame.
+        #: Nor do they move a model's per-unit prices (per vertex, face, pixel, draw, splat), only its c0: a
+        #: renderer costs less per triangle at light loads than at the budget's (llvmpipe: ~30 ns up to 128k,
+        #: ~200 ns beyond 256k), so after twelve seconds of the auditorium's stage the cost per vertex was half
+        #: the hall's, and the hall's first selection drew 300k triangles in 70–90 ms frames. A model whose
+        #: prediction is not light (one pricing the work too high) still learns from light frames.
         self.tail_min_time = 0.0
         self.recent = max(1, window // 3)
         self.hold = max(1, window // 12)
@@ -445,8 +463,9 @@ class OnlineCostModel:
         if predicted > 0 and max(predicted, time) >= self.tail_min_time:
             self._ratios.append(time / predicted)  # the chosen model's held-out ratio, for ``tail_ratio``
         for rung in self.rungs.values():
-            rung.errors.append(abs(_frame(rung.full(), z, r) - time) / time)  # held out: before it learns
-            rung.observe(time, z, LEAST_SLACK * self.least)
+            guess = _frame(rung.full(), z, r)
+            rung.errors.append(abs(guess - time) / time)  # held out: before it learns
+            rung.observe(time, z, LEAST_SLACK * self.least, light=max(guess, time) < self.tail_min_time)
         self._faces = self._lam * self._faces + cols[0].sum()
         self._verts = self._lam * self._verts + cols[1].sum()
         self.frames += 1
