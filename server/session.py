@@ -77,7 +77,7 @@ __all__ = ["Session", "SessionConfig", "SessionState", "SceneSource"]
 log = logging.getLogger("walkstream.session")
 
 #: Frames under this share of the target frame time (measured and predicted) are left out of the budget's tail
-#: ratio (``OnlineCostModel.tail_min_time``).
+#: ratio and move only the cost model's fixed overhead, not its per-unit prices (``OnlineCostModel.tail_min_time``).
 TAIL_MIN_SHARE = 0.25
 
 
