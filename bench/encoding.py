@@ -20,7 +20,8 @@ import zstandard
 from proto.geometry import decode_geometry
 from proto.morph import decode_morph
 from proto.points import decode_instances, decode_points
-from server.scene.store import TREES, SceneStore
+from server.scene.index import TREES
+from server.scene.store import SceneStore
 
 __all__ = ["measure", "run"]
 

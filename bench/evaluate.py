@@ -131,7 +131,8 @@ class RunSpec:
 
 def scene_has_continuous(store_path: str | Path) -> bool:
     """True if the store holds tree groups (the continuous objects of the mixed solver)."""
-    from server.scene.store import TREES, SceneStore
+    from server.scene.index import TREES
+    from server.scene.store import SceneStore
 
     with SceneStore.open(store_path) as s:
         return bool(np.any(s.index.object_kind == TREES))

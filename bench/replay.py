@@ -37,7 +37,8 @@ from proto.camera import NEAR, far_plane, projection_matrix, view_matrix
 from proto.geometry import decode_geometry
 from proto.morph import decode_morph
 from proto.points import decode_instances, decode_points
-from server.scene.store import TREES, SceneIndex, SceneStore
+from server.scene.index import TREES, SceneIndex
+from server.scene.store import SceneStore
 from server.select.morph import rep_parents
 
 __all__ = ["TREE_SPLATS", "Replayer", "finest_cut", "tree_groups"]

@@ -769,7 +769,7 @@ def _span(index) -> np.ndarray:
 def _coarsest_reps(index, cut: bool) -> np.ndarray:
     """Level-0 representations of the cheapest complete picture: the hierarchies' roots for a cut solver,
     the flat objects (leaf meshes, finest terrain patches) for a flat one. Tree groups are left out."""
-    from server.scene.store import TREES
+    from server.scene.index import TREES
 
     objects = (index.object_parent < 0) & (index.object_kind != TREES) if cut else index.flat
     return np.asarray(index.rep_first[np.nonzero(objects)[0]], np.int64)

@@ -326,7 +326,7 @@ class Session:
         self._acked = 0  # the last delta acked
         self._resync = False
         self._models_sent = False
-        from .scene.store import TREES
+        from .scene.index import TREES
         self._rep_trees = np.asarray(index.object_kind, np.int64)[np.asarray(index.rep_object, np.int64)] == TREES
         self._last_used = np.full(m, -1, dtype=np.int64)
         self._rep_level = np.asarray(index.rep_level, np.int64)

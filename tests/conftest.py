@@ -28,7 +28,7 @@ def _compiled_kernels_ready():
 @pytest.fixture(scope="session")
 def demo_store(tmp_path_factory) -> Path:
     """A small demo scene (same generator as ``walkstream build demo``), built once."""
-    from server.scene.build import build_demo
+    from server.scene.demo import build_demo
 
     path = tmp_path_factory.mktemp("scenes") / "demo-small.db"
     build_demo(path, objects=24, seed=3)

@@ -20,7 +20,8 @@ from server.scene.data import data_file
 from server.scene.importers import load_source
 from server.scene.inspect import inspect_store
 from server.scene.source import SourceError
-from server.scene.store import HLOD, KINDS, MESH, TERRAIN, TREES, SceneStore
+from server.scene.index import HLOD, KINDS, MESH, TERRAIN, TREES
+from server.scene.store import SceneStore
 
 
 # --------------------------------------------------------------------------- what every store must satisfy

@@ -30,7 +30,8 @@ from proto.codec import decode_client, decode_server, encode
 from proto.manifest import digest
 from proto.messages import Ack, Camera, Delta, Hello, Pong, Pose, Welcome
 from proto.points import Instances, Points
-from server.scene.store import TREES, SceneStore
+from server.scene.index import TREES
+from server.scene.store import SceneStore
 from server.session import Session, SessionConfig
 
 PRESSURE = 300_000  # bytes: a fraction of the demo store's ~1.9 MB, so the mirror evicts every few deltas

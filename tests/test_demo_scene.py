@@ -7,8 +7,7 @@ import pytest
 import trimesh
 
 from proto.messages import Pose, TourKey
-from server.scene.build import build_demo
-from server.scene.demo import CLASS_NAMES, generate_demo
+from server.scene.demo import CLASS_NAMES, build_demo, generate_demo
 from server.scene.lod import build_chain
 from server.scene.store import SceneStore
 

@@ -218,7 +218,7 @@ def test_resolve_scene_opens_a_store(demo_store):
 
 def test_resolve_scene_builds_a_named_scene_once_into_the_cache(tmp_path, monkeypatch):
     import server.scene.catalog as catalog
-    from server.scene.build import build_demo
+    from server.scene.demo import build_demo
 
     calls = []
 

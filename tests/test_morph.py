@@ -13,8 +13,7 @@ from hypothesis import strategies as st
 from proto.errors import ProtocolError
 from proto.geometry import MAX_VERTICES, decode_geometry, encode_geometry, order_for_gpu
 from proto.morph import decode_morph, encode_morph
-from server.scene.build import build_object
-from server.scene.demo import generate_demo
+from server.scene.demo import build_object, generate_demo
 from server.scene.lod import (
     Chain, build_chain, chain_from_levels, morph_faces_match, morph_positions, morph_surface_error,
     nearest_vertex_map,

@@ -9,7 +9,8 @@ from bench import quality
 from bench.replay import Replayer, finest_cut, tree_groups
 from client.app import FrameTrace
 from client.navigation import Tour
-from server.scene.store import TREES, SceneStore
+from server.scene.index import TREES
+from server.scene.store import SceneStore
 from server.select.morph import rep_parents
 
 VIEW = (160, 90)

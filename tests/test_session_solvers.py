@@ -12,7 +12,8 @@ import pytest
 from proto import PROTOCOL_VERSION
 from proto.codec import decode_server, encode
 from proto.messages import Camera, Delta, FrameReport, Hello, Ping, Pong, Welcome
-from server.scene.store import TREES, SceneStore
+from server.scene.index import TREES
+from server.scene.store import SceneStore
 from server.select import solvers
 from server.session import Session
 

@@ -13,7 +13,8 @@ from scipy.spatial import cKDTree
 
 from proto.geometry import decode_geometry
 from server.scene.lod import build_chain, chain_errors
-from server.scene.store import SCHEMA_VERSION, SceneStore, SceneWriter, StoreError, object_box
+from server.scene.store import SCHEMA_VERSION, SceneStore, StoreError
+from server.scene.writer import SceneWriter, object_box
 
 TOUR = [
     {"t": 0.0, "eye": [0.0, -5.0, 1.7], "forward": [0.0, 1.0, 0.0], "up": [0.0, 0.0, 1.0]},

@@ -21,32 +21,28 @@ datum, and float32 on the GPU would keep only decimetres there.
 from __future__ import annotations
 
 import math
-import multiprocessing
 import os
-import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from proto.geometry import encode_geometry
-from proto.morph import encode_morph
 
+from .index import HLOD, MESH, TERRAIN, TREES
 from .lod import build_chain, chain_from_levels
-from .source import Mesh, SourceObject, SourceScene
-from .store import HLOD, MESH, TERRAIN, TREES, SceneStore, SceneWriter, StoreError, object_box
+from .source import Mesh, SourceScene
+from .store import SceneStore
 from .tour import orbit_tour
+from .workers import POOL_MIN_JOBS, default_workers, pool_map
+from .writer import SceneWriter, encode_levels
 
 __all__ = ["BuildOptions", "build_store", "Progress"]
 
 #: progress(stage, done, total)
 Progress = Callable[[str, int, int], None]
-
-#: Below this many objects a process pool costs more than it saves.
-_POOL_MIN_OBJECTS = 48
 
 
 @dataclass(frozen=True)
@@ -92,25 +88,10 @@ def _chain_job(args: tuple) -> tuple:
             if len(f) < len(kept[-1][1]):
                 kept.append((p, f))
         chain = chain_from_levels(kept[::-1], morph="nearest")
-    lo, hi = object_box(chain.levels)
-    blobs = [encode_geometry(p, f, lo, hi, reorder=False) for p, f in chain.levels]
     # morph[k] maps level k's vertices onto level k-1's; the coarsest level (and morph="none") has none.
-    morphs = [None if k == 0 or m is None else encode_morph(m, chain.levels[k - 1][0].shape[0])
-              for k, m in enumerate(chain.morph)]
+    lo, hi, blobs, morphs = encode_levels(chain.levels, chain.morph, reorder=False)
     coarsest = chain.levels[0]
     return lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest
-
-
-def _pool_map(fn: Callable, jobs: Sequence, workers: int) -> Iterator:
-    if workers <= 1 or len(jobs) < _POOL_MIN_OBJECTS:
-        yield from map(fn, jobs)
-        return
-    # fork is fast, but unsafe once other threads exist (inside a server); spawn then.
-    single = threading.active_count() == 1 and "fork" in multiprocessing.get_all_start_methods()
-    context = multiprocessing.get_context("fork" if single else "spawn")
-    chunk = max(1, min(64, len(jobs) // (workers * 16)))
-    with ProcessPoolExecutor(workers, mp_context=context) as pool:
-        yield from pool.map(fn, jobs, chunksize=chunk)
 
 
 def scene_origin(source: SourceScene) -> np.ndarray:
@@ -182,7 +163,7 @@ def build_store(
     tick = progress or (lambda stage, done, total: None)
     source.check()
     origin = scene_origin(source) if recentre else np.zeros(3)
-    workers = options.workers or min(8, os.cpu_count() or 1)
+    workers = options.workers or default_workers()
     timings: dict[str, float] = {}
 
     # 1. chains
@@ -192,7 +173,9 @@ def build_store(
             for o in objects]
     chains: list[tuple] = []
     tick("chains", 0, len(jobs))
-    for done, result in enumerate(_pool_map(_chain_job, jobs, workers), 1):
+    pooled = workers if len(jobs) >= POOL_MIN_JOBS else 1
+    chunk = max(1, min(64, len(jobs) // (workers * 16)))
+    for done, result in enumerate(pool_map(_chain_job, jobs, pooled, chunk), 1):
         chains.append(result)
         tick("chains", done, len(jobs))
     timings["chains"] = time.perf_counter() - t0

@@ -171,7 +171,7 @@ def build_named(name: str, path: str | os.PathLike[str], *, seed: int = 0, size:
         raise ValueError(f"--grid resamples the sthelens DEM to 2..8193 samples a side; got {grid} for {name!r}")
     tick = progress or (lambda stage, done, total: None)
     if name == "demo":
-        from .build import build_demo
+        from .demo import build_demo
 
         return build_demo(path, objects=size or 576, seed=seed, workers=workers,
                           progress=lambda d, t: tick("objects", d, t))

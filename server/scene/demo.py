@@ -1,4 +1,4 @@
-"""The demo scene: a sculpture garden too detailed to draw in full, and a tour through it.
+"""The demo scene: a sculpture garden too detailed to draw in full, a tour through it, and its store.
 
 Objects stand in 4 × 4 blocks separated by avenues, so a camera flying along
 an avenue sees long rows of objects on both sides and far ahead: hundreds of
@@ -12,24 +12,50 @@ gradually, and full-detail face counts vary from about 4.5k to 16k.
 World axes: z is up, the ground is near z = 0, units are metres.
 
 Meshes are made on demand (``DemoObject.mesh()``) rather than held: the full
-scene is ~5M triangles, and the builder works one object at a time, possibly
-in worker processes, from the small picklable recipe. The same
-``(objects, seed)`` gives the same meshes and tour on the same machine.
+scene is ~5M triangles, and ``build_demo`` works one object at a time, in
+worker processes, from the small picklable recipe: each worker makes the mesh,
+its LOD chain with geomorph maps, the error of each level and the payloads,
+and only the payloads travel back; the parent writes them in object order
+through one ``SceneWriter`` transaction. The result does not depend on the
+number of workers, and the same ``(objects, seed)`` gives the same meshes and
+tour wherever numpy's floating-point functions round alike.
+
+The demo does not go through the ``SourceScene`` builder (``server.scene.builder``):
+that one holds every mesh in the parent before it starts, names classes in the
+order it meets them and records an origin and source metadata; the demo's
+store keeps its fixed ``CLASS_NAMES`` and the meta it has always had. Both
+share the worker pool (``server.scene.workers``) and the level encoding
+(``server.scene.writer.encode_levels``).
 
 Example::
 
     >>> scene = generate_demo(objects=12, seed=0)
     >>> positions, faces = scene.objects[0].mesh()   # (n, 3) float64, (m, 3) int64
+
+Build the store from the command line::
+
+    python -m server.scene.demo demo.db --objects 576 --seed 0
 """
 
 from __future__ import annotations
 
+import argparse
 import math
+import os
+import sys
+import time
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
-__all__ = ["CLASS_NAMES", "DemoObject", "DemoScene", "generate_demo"]
+from .lod import build_chain
+from .store import SceneStore
+from .workers import POOL_MIN_JOBS, default_workers, pool_map
+from .writer import SceneWriter, encode_levels
+
+__all__ = ["CLASS_NAMES", "DemoObject", "DemoScene", "generate_demo", "build_demo", "build_object"]
 
 #: Object classes of the demo, in the order their ids take in the store.
 CLASS_NAMES = ["ground", "rock", "column", "statue", "ring"]
@@ -67,8 +93,8 @@ class DemoObject:
             return _ground(p, rng)
         local, faces = _SHAPES[self.cls](p, rng)
         # Rotation about z written out: a BLAS matmul would start BLAS's thread
-        # pool in every build worker and oversubscribe the cores (measured 25-50 %
-        # slower builds), and may round differently from machine to machine.
+        # pool in every build worker and oversubscribe the cores (slower builds),
+        # and may round differently from one BLAS build to another.
         c, s = math.cos(p["yaw"]), math.sin(p["yaw"])
         world = np.empty_like(local)
         world[:, 0] = c * local[:, 0] - s * local[:, 1] + p["x"]
@@ -412,3 +438,96 @@ def generate_demo(objects: int = 576, seed: int = 0) -> DemoScene:
     tour = _tour(blocks, rng)
     start = {k: tour[0][k] for k in ("eye", "forward", "up")}
     return DemoScene(name="demo", objects=out, tour=tour, start=start, class_names=list(CLASS_NAMES), seed=seed)
+
+
+# --------------------------------------------------------------------------- the demo's store
+
+
+def build_object(
+    obj: DemoObject,
+) -> tuple[DemoObject, np.ndarray, np.ndarray, list[float], list[bytes], list[bytes | None]]:
+    """One object's store rows: (object, box lo (3,), box hi (3,), errors per level,
+    geometry payloads per level, morph payloads per level).
+
+    Levels are coarsest → finest; every level is quantized in one box
+    (``object_box``) and stored in the chain's GPU order (``reorder=False``), so
+    the morph maps (``proto.morph``, from the simplifier's edge collapses) index
+    the stored vertices: entry k maps level k's vertices onto level k − 1's; entry 0 is None.
+    """
+    positions, faces = obj.mesh()
+    chain = build_chain(positions, faces, morph="collapse")
+    lo, hi, blobs, morphs = encode_levels(chain.levels, chain.morph, reorder=False)
+    return obj, lo, hi, chain.errors, blobs, morphs
+
+
+def build_demo(
+    path: str | os.PathLike[str],
+    *,
+    objects: int = 576,
+    seed: int = 0,
+    progress: Callable[[int, int], None] | None = None,
+    workers: int | None = None,
+) -> dict:
+    """Generate the demo scene and write it to a new store at ``path`` (atomically).
+
+    objects  : sculptures (ground tiles are added: 16 for the default size)
+    progress : called as progress(done, total) after each object is written
+    workers  : processes; default one per CPU (at most 8), and none for small scenes
+
+    Returns a summary: path, objects, representations, triangles (full detail),
+    triangles_per_level (list, level 0 = coarsest, over objects having that
+    level), bytes (file size), geometry_bytes, seconds.
+    """
+    started = time.perf_counter()
+    scene = generate_demo(objects=objects, seed=seed)
+    total = len(scene.objects)
+    if workers is None:
+        workers = 1 if objects < POOL_MIN_JOBS else default_workers()
+    reps = geometry_bytes = 0
+    with SceneWriter(path, name=scene.name, generator="walkstream demo", seed=seed,
+                     class_names=scene.class_names) as writer:
+        for done, (obj, lo, hi, errors, blobs, morphs) in enumerate(pool_map(build_object, scene.objects, workers, chunksize=4), 1):
+            writer.add_encoded(obj.name, obj.cls, lo, hi, errors, blobs, morphs=morphs)
+            reps += len(blobs)
+            geometry_bytes += sum(len(b) for b in blobs)
+            if progress is not None:
+                progress(done, total)
+        writer.set_tour(scene.tour)
+        writer.set_start(scene.start)
+    with SceneStore.open(path) as store:
+        idx = store.index
+        full = idx.rep_first + idx.rep_count - 1
+        triangles = int(idx.rep_faces[full].sum())
+        per_level = np.bincount(idx.rep_level, weights=idx.rep_faces).astype(np.int64).tolist()
+    return {
+        "path": str(path),
+        "objects": total,
+        "representations": reps,
+        "triangles": triangles,
+        "triangles_per_level": per_level,
+        "bytes": Path(path).stat().st_size,
+        "geometry_bytes": geometry_bytes,
+        "seconds": round(time.perf_counter() - started, 2),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="Build the walkstream demo scene store.")
+    parser.add_argument("path", type=Path)
+    parser.add_argument("--objects", type=int, default=576)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=None)
+    args = parser.parse_args(argv)
+
+    def report(done: int, total: int) -> None:
+        if done == total or done % 50 == 0:
+            print(f"\r{done}/{total} objects", end="\n" if done == total else "", file=sys.stderr, flush=True)
+
+    summary = build_demo(args.path, objects=args.objects, seed=args.seed, progress=report, workers=args.workers)
+    for key, value in summary.items():
+        print(f"{key}: {value}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

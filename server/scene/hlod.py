@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import fast_simplification
@@ -31,6 +30,7 @@ import numpy as np
 
 from server.scene.lod import clean_mesh, geometric_error
 from server.scene.source import Mesh
+from server.scene.workers import process_pool
 
 __all__ = ["HLODTree", "build_hlod"]
 
@@ -243,7 +243,7 @@ def build_hlod(
     tree = HLODTree(parent, depth, np.empty((n_nodes, 3)), np.empty((n_nodes, 3)), np.zeros(n_nodes),
                     [None] * n_nodes, object_parent)  # type: ignore[list-item]
     stalled = np.zeros(n_nodes, bool)  # the node's proxy needed vertex clustering
-    pool = ProcessPoolExecutor(workers) if workers > 1 else None
+    pool = process_pool(workers) if workers > 1 else None
     done = 0
     try:
         # Bottom-up one depth at a time: the nodes of a depth are independent.

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .store import KINDS, TREES, SceneStore
+from .index import KINDS, TREES
+from .store import SceneStore
 
 __all__ = ["inspect_store", "format_report"]
 

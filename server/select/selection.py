@@ -122,7 +122,7 @@ class Scene:
 
     @classmethod
     def of(cls, index, importance: np.ndarray | None = None) -> "Scene":
-        from server.scene.store import TREES
+        from server.scene.index import TREES
 
         trees = index.object_kind == TREES
         hierarchy = Levels.subset(index, np.nonzero(~trees)[0], hierarchy=True)
