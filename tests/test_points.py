@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -83,11 +81,10 @@ def test_point_model_fields():
     assert np.array_equal(pm.positions, again.positions)
 
 
-def test_ordering_is_fast():
+def test_ordering_of_many_points_is_a_permutation():
+    """(Its speed is measured in test_scene_perf.py.)"""
     p = np.random.default_rng(0).normal(size=(100_000, 3))
-    t = time.perf_counter()
     order = prefix_order(p)
-    assert time.perf_counter() - t < 1.5  # ~0.3 s here
     assert np.array_equal(np.sort(order), np.arange(100_000))
 
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -146,13 +144,9 @@ def test_instance_boxes_match_corners(boxes):
     assert np.allclose(lo, world.min(axis=1)) and np.allclose(hi, world.max(axis=1))
 
 
-def test_big_forest_places_and_groups_in_seconds(boxes):
+def test_big_forest_places_and_groups(boxes):
+    """St. Helens' scale (its speed is measured in test_scene_perf.py)."""
     g = _grid(rows=2049, spacing=58.6)
-    t = time.perf_counter()
     trees = forest(g, 1_400_000, seed=0, models=len(boxes))
-    placed = time.perf_counter() - t
-    t = time.perf_counter()
     groups = group_trees(trees, [4096] * len(boxes), model_boxes=boxes)
-    grouped = time.perf_counter() - t
     assert len(trees) == 1_400_000 and groups.group_count.max() <= 64
-    assert placed < 10 and grouped < 10  # ~1 s each here

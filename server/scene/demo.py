@@ -450,7 +450,7 @@ def build_object(
     geometry payloads per level, morph payloads per level).
 
     Levels are coarsest → finest; every level is quantized in one box
-    (``object_box``) and stored in the chain's GPU order (``reorder=False``), so
+    (``writer.object_box``) and stored in the chain's GPU order (``reorder=False``), so
     the morph maps (``proto.morph``, from the simplifier's edge collapses) index
     the stored vertices: entry k maps level k's vertices onto level k − 1's; entry 0 is None.
     """

@@ -118,7 +118,7 @@ def prefix_tree(
                   coverage. "breadth" is the strict level order (largest first
                   within a level): the prefix that completes depth d holds one point
                   per depth-d cell, but thin parts (a trunk) wait for whole levels;
-                  its prefix coverage on tree models is ~1.5× worse at N = 64…1024.
+                  so its prefix coverage on tree models is worse at N = 64…1024.
 
     All cells of a level are processed at once: the points are kept in three
     arrays, each sorted by one axis within every cell, and a split is a stable
