@@ -16,6 +16,9 @@ The stages, each with its own progress count:
 Geometry is recentred on an ``origin`` (recorded in meta) before anything is
 encoded: CityJSON and DEM coordinates are hundreds of kilometres from their
 datum, and float32 on the GPU would keep only decimetres there.
+
+Every named scene and every imported file is built here, except the demo:
+``server.scene.demo`` builds its store itself and says why.
 """
 
 from __future__ import annotations
