@@ -52,16 +52,15 @@ import numpy as np
 
 from proto.camera import cross3, projection_matrix, view_matrix
 from proto.geometry import Geometry
+from proto.messages import ALGORITHMS
 
 from .arena import Arena, Relocation
 
-__all__ = ["FrameStats", "FrameTerms", "Renderer", "RendererError", "BACKGROUND", "VERTEX", "DRAW", "ALGORITHMS",
+__all__ = ["FrameStats", "FrameTerms", "Renderer", "RendererError", "BACKGROUND", "VERTEX", "DRAW",
            "Layer", "object_tint", "morph_targets", "smooth_normals", "target_normals"]
 
 #: Clear colour (sky), RGB in [0, 1].
 BACKGROUND = (0.62, 0.74, 0.86)
-#: Rendering algorithms, cheapest first; ``draw(algorithms=...)`` indexes this (as ``proto.messages.ALGORITHMS``).
-ALGORITHMS = ("flat", "lit", "textured")
 _FRAGMENT = ("mesh.frag.glsl", "mesh_lit.frag.glsl", "mesh_textured.frag.glsl")
 _SHADERS = Path(__file__).with_name("shaders")
 _EGL_HINT = (
