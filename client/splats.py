@@ -398,7 +398,7 @@ class SplatLayer:
         if np.linalg.norm(forward) < 1e-12:
             forward = -vp[2, :3]
         right, up, forward = (v / max(np.linalg.norm(v), 1e-300) for v in (right, up, forward))
-        sun = -forward + 0.6 * up + 0.35 * right  # as client.renderer._key_light
+        sun = -forward + 0.6 * up + 0.35 * right  # as client.shading.key_light
         prog = self.program
         prog["u_view_projection"].write(vp.T.astype("f4").tobytes())
         prog["u_eye"].value = tuple(eye)
