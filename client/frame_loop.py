@@ -257,10 +257,11 @@ class FrameLoop:
 def quiet_collector() -> Iterator[None]:
     """Keep the cyclic garbage collector off the frame loop's critical path.
 
-    A full (generation 2) collection scans every tracked object — the imported libraries' tens of thousands —
-    and took 35–45 ms in a 30 s auditorium run: one frame of it doubled. Everything alive when the loop
-    starts is frozen (``gc.freeze``), so later collections scan only what the run itself made; it is
-    unfrozen afterwards, so what becomes garbage later is collected again as usual.
+    A full (generation 2) collection scans every tracked object — the imported libraries' tens of
+    thousands — and is long enough to land inside a frame, whose measured time the cost model would then
+    take for the cost of that frame's work. Everything alive when the loop starts is frozen
+    (``gc.freeze``), so later collections scan only what the run itself made; it is unfrozen afterwards,
+    so what becomes garbage later is collected again as usual.
     """
     gc.collect()
     gc.freeze()

@@ -153,7 +153,7 @@ class SplatLayer:
         self._warm_up()
 
     def _warm_up(self) -> None:
-        """Draw one splat into a scratch target, so llvmpipe's shader compile (tens of ms) is not in frame 0."""
+        """Draw one splat into a scratch target, so the shader's compile at its first draw is not in frame 0."""
         point = np.zeros(1, POINT)
         point["normal"] = (0, 0, 1)
         inst = np.zeros(1, INSTANCE)
