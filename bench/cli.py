@@ -405,7 +405,8 @@ def client(
                                             "(resuming the session, nothing re-sent); 0: a loss ends the run"),
 ) -> None:
     """Run the client over the scene's tour (headless, or in a window you can navigate) and print its frame times."""
-    from client.app import ClientError, run_client
+    from client.app import run_client
+    from client.connection import ClientError
     from client.window import WindowError
 
     _check_solver(solver)

@@ -2,7 +2,7 @@
 
 Image quality is measured against full detail at the same camera, drawn by the
 same renderer (issue 8). A client run with ``trace=True`` records per frame what
-it drew (``client.app.FrameTrace``: reps, morph weights, levels, rendering
+it drew (``client.records.FrameTrace``: reps, morph weights, levels, rendering
 algorithms, tree groups and their resolutions, camera); ``Replayer`` draws that
 frame again from the scene store, pixel for pixel as the client did, and draws
 the full-detail frame beside it.
@@ -43,7 +43,7 @@ from server.select.morph import rep_parents
 
 __all__ = ["TREE_SPLATS", "Replayer", "finest_cut", "tree_groups"]
 
-#: GPU bytes per vertex and per triangle in the renderer's arenas (``client.renderer.VERTEX``, uint32 indices).
+#: GPU bytes per vertex and per triangle in the renderer's arenas (``client.shading.VERTEX``, uint32 indices).
 _VERTEX_BYTES, _TRIANGLE_BYTES = 32, 12
 #: Representations fetched from the store per SELECT batch while loading.
 _BATCH = 256
@@ -162,7 +162,7 @@ class Replayer:
     # ----------------------------------------------------------------- frames
 
     def drawn(self, trace, *, false_colour: bool = False) -> np.ndarray:
-        """(h, w, 3) uint8 — the frame as the client drew it (``client.app.FrameTrace``), drawn again untimed.
+        """(h, w, 3) uint8 — the frame as the client drew it (``client.records.FrameTrace``), drawn again untimed.
 
         The rows the client held (``trace.drawn``) with their morph weights, levels and
         rendering algorithms, the tree groups at their resolutions, from the traced camera with

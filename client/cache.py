@@ -132,6 +132,10 @@ class ResidentCache:
         """Representations held (meshes and tree groups): the ack's ``held``."""
         return len(self._bytes)
 
+    def held_reps(self) -> np.ndarray:
+        """(h,) int64, sorted — the representations held (a copy): what a resuming hello's manifest names."""
+        return self._ids.copy()
+
     @property
     def triangles(self) -> int:
         """Triangles in the current selection."""

@@ -5,24 +5,25 @@ to, so the fence holds drawing only: clear, the mesh draws, the layers (point
 splats) and ``ctx.finish()``. Uploads, frees and arena compaction happen
 between frames, outside it.
 
-Layout (issue 6). Resident geometry lives in two ``Arena`` s: a vertex arena of
-``VERTEX`` records (position, morph target and their smooth normals; 32 bytes) and an
-index arena of uint32 indices, stored as uploaded (local to their
-representation; the draw's baseVertex offsets them). A representation is a
-*slot* in numpy tables (its indirect command template, vertex and triangle
-counts, tint, whether it has a morph target); rep ids map to slots through a
-dense int32 table indexed by rep id, so ``draw`` looks up all its reps at once.
+Layout. Resident geometry lives in two ``Arena`` s: a vertex arena of
+``VERTEX`` records (position, morph target and their smooth normals; 32 bytes,
+``client.shading``) and an index arena of uint32 indices, stored as uploaded
+(local to their representation; the draw's baseVertex offsets them). A
+representation is a *slot* in numpy tables (``client.slots``: its indirect
+command template, vertex and triangle counts, tint, bounding sphere, whether it
+has a morph target), so a frame looks up all its reps at once.
 
-A frame builds, with numpy only, one DrawElementsIndirectCommand per drawn rep
-(count, 1, firstIndex, baseVertex, baseInstance = its row) and a per-draw row
-(``DRAW``: morph weight, level, tint, flags) read by the vertex shader as
-instanced attributes with divisor 1 — baseInstance selects the row, so no
-per-draw uniform (on llvmpipe a uniform change between draws cost as much as
-the draw). Draws are grouped by rendering algorithm (flat, lit, textured:
-separate programs over the same vertex layout) and each group is one
-``render_indirect``. No back-face culling: simplified meshes do not keep a
-consistent winding; flat and textured take their normal from screen-space
-derivatives and lit flips its normal towards the viewer.
+A frame is planned with numpy only (``client.frame_plan``): one
+DrawElementsIndirectCommand per drawn rep (count, 1, firstIndex, baseVertex,
+baseInstance = its row) and a per-draw row (``DRAW``: morph weight, level,
+tint, flags) read by the vertex shader as instanced attributes with divisor 1 —
+baseInstance selects the row, so no per-draw uniform (on a software
+rasterizer a uniform change between draws costs as much as the draw). Draws
+are grouped by rendering algorithm (flat, lit, textured: separate programs
+over the same vertex layout) and each group is one ``render_indirect``. No
+back-face culling: simplified meshes do not keep a consistent winding; flat
+and textured take their normal from screen-space derivatives and lit flips its
+normal towards the viewer.
 
 Geomorphing (Zach 2002, 3.4): a vertex's morph target is the position it morphs
 to on the next coarser level (``morph_targets``); until ``set_morph_target``
@@ -41,27 +42,27 @@ receives M.T's bytes (GLSL reads column-major), so a layer uploads
 
 from __future__ import annotations
 
-import colorsys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, Sequence
 
 import moderngl
 import numpy as np
 
-from proto.camera import cross3, projection_matrix, view_matrix
+from proto.camera import projection_matrix, view_matrix
 from proto.geometry import Geometry
+from proto.messages import ALGORITHMS
 
 from .arena import Arena, Relocation
+from .frame_plan import DRAW, plan_frame
+from .shading import VERTEX, key_light, pack_normals, packed_tint, target_normals, vertex_records
+from .slots import SlotTable
 
-__all__ = ["FrameStats", "FrameTerms", "Renderer", "RendererError", "BACKGROUND", "VERTEX", "DRAW", "ALGORITHMS",
-           "Layer", "object_tint", "morph_targets", "smooth_normals", "target_normals"]
+__all__ = ["FrameStats", "FrameTerms", "Renderer", "RendererError", "BACKGROUND", "Layer", "morph_targets"]
 
 #: Clear colour (sky), RGB in [0, 1].
 BACKGROUND = (0.62, 0.74, 0.86)
-#: Rendering algorithms, cheapest first; ``draw(algorithms=...)`` indexes this (as ``proto.messages.ALGORITHMS``).
-ALGORITHMS = ("flat", "lit", "textured")
 _FRAGMENT = ("mesh.frag.glsl", "mesh_lit.frag.glsl", "mesh_textured.frag.glsl")
 _SHADERS = Path(__file__).with_name("shaders")
 _EGL_HINT = (
@@ -69,17 +70,8 @@ _EGL_HINT = (
     "(apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri)"
 )
 _NEEDS = ("GL_ARB_multi_draw_indirect", "GL_ARB_base_instance")
-#: Rep ids below this live in the dense lookup table (≤ 64 MiB); others (and negatives) in a sorted overflow.
-_DENSE_LIMIT = 1 << 24
 _TEXTURE_PERIOD = 64.0  # metres, mesh_textured.frag.glsl's PERIOD
-_AXES = np.arange(3)
 
-#: Vertex record: world position, morph target (= position until set), smooth normal and the target's normal
-#: (n·½+½ in normalised bytes, 4th byte padding). 32 bytes.
-VERTEX = np.dtype([("position", "<f4", 3), ("target", "<f4", 3), ("normal", "u1", 4), ("target_normal", "u1", 4)])
-#: Per-draw row (instanced attribute, divisor 1): weight, continuous level, tint (RGBA8 packed little-endian), flags.
-DRAW = np.dtype([("weight", "<f4"), ("level", "<f4"), ("tint", "<u4"), ("flags", "<u4")])
-_FLAG_MORPH = 1
 _VERTEX_FORMAT = ("3f 3f 4f1 4f1", "in_pos", "in_target", "in_normal", "in_target_normal")
 _DRAW_FORMAT = ("1f 1f 4f1 1u4 /i", "in_weight", "in_level", "in_tint", "in_flags")
 
@@ -170,130 +162,10 @@ def morph_targets(fine_positions: np.ndarray, coarse_positions: np.ndarray, vert
     return np.ascontiguousarray(coarse[m.astype(np.intp, copy=False)], np.float32).reshape(-1, 3)
 
 
-def object_tint(object_id: int) -> tuple[float, float, float]:
-    """A muted colour that is stable per object id (integer hash → hue)."""
-    h = (int(object_id) * 0x9E3779B1 + 0x7F4A7C15) & 0xFFFFFFFF
-    h ^= h >> 16
-    h = (h * 0x85EBCA6B) & 0xFFFFFFFF
-    h ^= h >> 13
-    hue = (h & 0xFFFF) / 65536.0
-    value = 0.75 + 0.2 * ((h >> 16) & 0xFF) / 255.0
-    r, g, b = colorsys.hsv_to_rgb(hue, 0.35, value)
-    return (r, g, b)
-
-
-def _packed_tint(object_id: int) -> int:
-    r, g, b = (round(255 * c) for c in object_tint(object_id))
-    return r | (g << 8) | (b << 16) | (255 << 24)
-
-
-def smooth_normals(positions: np.ndarray, indices: np.ndarray) -> np.ndarray:
-    """(nv, 3) float32 unit vertex normals: area-weighted face normals summed per vertex (vectorised).
-
-    Simplified meshes do not keep a consistent winding, so a second pass flips
-    each face normal to agree with the first pass's sum at its corners before
-    summing again: a minority of flipped faces no longer cancels its
-    neighbours. Vertices without (non-degenerate) faces get +z.
-    """
-    p = np.asarray(positions, np.float64).reshape(-1, 3)
-    f = np.asarray(indices, np.intp).reshape(-1, 3)
-    nv = p.shape[0]
-    if not f.size:
-        out = np.zeros((nv, 3), np.float32)
-        out[:, 2] = 1.0
-        return out
-    tri = p[f]
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    face = e1[:, [1, 2, 0]] * e2[:, [2, 0, 1]] - e1[:, [2, 0, 1]] * e2[:, [1, 2, 0]]  # cross, cheaper than np.cross
-    slots = ((f * 3)[:, :, None] + _AXES).ravel()  # (face, corner, axis) → vertex·3 + axis
-    first = np.bincount(slots, weights=np.repeat(face, 3, axis=0).ravel(), minlength=3 * nv).reshape(nv, 3)
-    face[np.einsum("ij,ikj->i", face, first[f]) < 0] *= -1.0
-    out = np.bincount(slots, weights=np.repeat(face, 3, axis=0).ravel(), minlength=3 * nv).reshape(nv, 3)
-    norm = np.sqrt(np.einsum("ij,ij->i", out, out))
-    bad = norm <= 1e-30
-    norm[bad] = 1.0
-    out /= norm[:, None]
-    out[bad] = (0.0, 0.0, 1.0)
-    return out.astype(np.float32)
-
-
-def target_normals(targets: np.ndarray, indices: np.ndarray) -> np.ndarray:
-    """(nv, 3) float32 normals for a level's vertices at their morph targets: the coarser level's smooth normals.
-
-    At w = 0 a level's triangles collapse onto the coarser level's: those whose
-    corners meet degenerate (zero area, no weight) and the rest are the coarser
-    triangles. So the smooth normals of the collapsed mesh, with the vertices
-    that share a target position merged into one, are the coarser level's
-    normals (up to summation order), and the lit algorithm morphs its shading
-    along with the shape instead of popping at the switch.
-    """
-    t = np.asarray(targets, np.float32).reshape(-1, 3)
-    if t.shape[0] == 0:
-        return np.zeros((0, 3), np.float32)
-    unique, inverse = np.unique(t, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    return smooth_normals(unique, inverse[np.asarray(indices, np.intp).reshape(-1, 3)])[inverse]
-
-
-def _pack_normals(normals: np.ndarray) -> np.ndarray:
-    """(nv, 4) uint8: unit normals as n·½+½ in bytes (the shader's normalised 4f1), padding 255."""
-    packed = np.full((normals.shape[0], 4), 255, np.uint8)
-    packed[:, :3] = normals * 127.5 + 128.0  # in [0.5, 255.5) for unit vectors: truncation rounds to nearest
-    return packed
-
-
-def _sphere(centre: np.ndarray, half: np.ndarray) -> tuple[float, float, float, float]:
-    """A box's bounding sphere for the float32 table: the radius grows by more than float32 rounds the centre
-    (2⁻²⁴ relative), so the rounded sphere still holds the box."""
-    r = float(np.linalg.norm(half))
-    return (*map(float, centre), r + 1e-6 * (float(np.abs(centre).max()) + r))
-
-
-def _key_light(forward: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """Unit direction (3,) towards a light carried above, behind and right of the camera.
-
-    A camera-borne key light lights every visible face (no black backs in a
-    walkthrough) while the angle still separates the faces of a shape.
-    """
-    f = forward / np.linalg.norm(forward)
-    s = cross3(f, up)
-    s /= np.linalg.norm(s)
-    u = cross3(s, f)
-    light = -f + 0.6 * u + 0.35 * s
-    return light / np.linalg.norm(light)
-
-
 def _source(name: str, defines: str, common: str) -> str:
     """A stage's source with the defines and ``mesh_common.glsl`` inserted after its #version line."""
     head, _, body = (_SHADERS / name).read_text().partition("\n")
     return f"{head}\n{defines}{common}\n#line 2\n{body}"
-
-
-@dataclass
-class _Slots:
-    """Per-slot tables (numpy, grown geometrically); a slot is one resident representation."""
-
-    command: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), np.uint32))  # count, 1, first, base, 0
-    vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    faces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    tint: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint32))
-    target: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    vblock: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # vertex arena offset, -1: none
-    iblock: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # index arena offset, -1: none
-    centre: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float64))  # box over fine and target
-    half: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float64))
-    # bounding sphere x, y, z, r in float32 (half the bytes a frame gathers), r padded over float32's rounding
-    sphere: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.float32))
-
-    def grow(self, capacity: int) -> None:
-        old = self.vertices.size
-        for name in ("command", "vertices", "faces", "tint", "target", "vblock", "iblock", "centre", "half", "sphere"):
-            a = getattr(self, name)
-            b = np.zeros((capacity,) + a.shape[1:], a.dtype)
-            b[:old] = a
-            setattr(self, name, b)
-        self.vblock[old:] = -1
-        self.iblock[old:] = -1
 
 
 class Renderer:
@@ -364,14 +236,8 @@ class Renderer:
         self._vaos: list[moderngl.VertexArray] = []
         self._vaos_stale = True
 
-        self._slots = _Slots()
-        self._slots.grow(256)
-        self._free_slots: list[int] = list(range(255, -1, -1))
-        self._table = np.full(1024, -1, np.int32)
-        self._overflow: dict[int, int] = {}
-        self._overflow_keys = np.zeros(0, np.int64)
-        self._overflow_slots = np.zeros(0, np.int32)
-        self.meshes: dict[int, int] = {}
+        self._slots = SlotTable()
+        self.meshes = self._slots.meshes
         """Resident representations: rep id → slot in the tables (read-only for callers)."""
 
         self._time_query = self.ctx.query(time=True)
@@ -385,7 +251,7 @@ class Renderer:
     def _warm_up(self) -> None:
         """Draw a triangle with every algorithm, static and morphing, false-coloured or not.
 
-        llvmpipe compiles shaders at their first draw (~25 ms each): not in frame 0's time.
+        A software rasterizer (llvmpipe) compiles a shader at its first draw: not in frame 0's time.
         """
         tri = Geometry(np.array([[-1, -1, -5], [1, -1, -5], [0, 1, -5]], np.float32), np.array([[0, 1, 2]], np.uint32))
         self.upload(-1, tri)
@@ -415,11 +281,7 @@ class Renderer:
         if nf and int(indices.max()) >= nv:
             raise ValueError(f"representation {rep} has indices beyond its {nv} vertices")
         self.free(rep)
-        records = np.empty(nv, VERTEX)
-        records["position"] = positions
-        records["target"] = positions
-        records["normal"] = _pack_normals(smooth_normals(positions, indices))
-        records["target_normal"] = records["normal"]
+        records = vertex_records(positions, indices)
         vblock = iblock = -1
         if nv:
             vblock = self.vertex_arena.alloc(nv)
@@ -427,17 +289,16 @@ class Renderer:
         if nf:
             iblock = self.index_arena.alloc(3 * nf)
             self.index_arena.write(iblock, indices)
-        slot = self._new_slot()
         s = self._slots
+        slot = s.new()
         s.command[slot] = (3 * nf, 1, max(iblock, 0), max(vblock, 0), 0)
         s.vertices[slot], s.faces[slot] = nv, nf
-        s.tint[slot] = _packed_tint(rep if object_id is None else object_id)
+        s.tint[slot] = packed_tint(rep if object_id is None else object_id)
         s.target[slot] = False
         s.vblock[slot], s.iblock[slot] = vblock, iblock
         lo, hi = (positions.min(axis=0), positions.max(axis=0)) if nv else (np.zeros(3), np.zeros(3))
-        s.centre[slot], s.half[slot] = (lo + hi) / 2.0, (hi - lo) / 2.0
-        s.sphere[slot] = _sphere(s.centre[slot], s.half[slot])
-        self._bind(rep, slot)
+        s.bound(slot, lo, hi)
+        s.bind(rep, slot)
 
     def set_morph_target(self, rep: int, targets: np.ndarray) -> None:
         """Give an uploaded representation its morph target (replacing any it had).
@@ -466,13 +327,12 @@ class Renderer:
             records["target"] = t
             if self._slots.faces[slot]:
                 indices = np.frombuffer(self.index_arena.read(int(self._slots.iblock[slot])), np.uint32)
-                records["target_normal"] = _pack_normals(target_normals(t, indices.reshape(-1, 3)))
+                records["target_normal"] = pack_normals(target_normals(t, indices.reshape(-1, 3)))
             self.vertex_arena.write(block, records)
             # A morphing vertex travels between its two positions: the box covers both ends.
             c, h = self._slots.centre[slot], self._slots.half[slot]
             lo, hi = np.minimum(c - h, t.min(axis=0)), np.maximum(c + h, t.max(axis=0))
-            self._slots.centre[slot], self._slots.half[slot] = (lo + hi) / 2.0, (hi - lo) / 2.0
-            self._slots.sphere[slot] = _sphere(self._slots.centre[slot], self._slots.half[slot])
+            self._slots.bound(slot, lo, hi)
         self._slots.target[slot] = True
 
     def has_morph_target(self, rep: int) -> bool:
@@ -485,67 +345,16 @@ class Renderer:
 
         An arena left too sparse (``Arena.fragmented``) is compacted here, between frames.
         """
-        rep = int(rep)
-        slot = self.meshes.pop(rep, None)
-        if slot is None:
+        blocks = self._slots.remove(int(rep))
+        if blocks is None:
             return
-        if 0 <= rep < _DENSE_LIMIT:
-            self._table[rep] = -1
-        else:
-            del self._overflow[rep]
-            self._overflow_keys = None  # rebuilt at the next lookup
-        s = self._slots
-        if s.vblock[slot] >= 0:
-            self.vertex_arena.free(int(s.vblock[slot]))
-        if s.iblock[slot] >= 0:
-            self.index_arena.free(int(s.iblock[slot]))
-        s.command[slot] = 0
-        s.vertices[slot] = s.faces[slot] = 0
-        s.target[slot] = False
-        s.vblock[slot] = s.iblock[slot] = -1
-        self._free_slots.append(slot)
+        vblock, iblock = blocks
+        if vblock >= 0:
+            self.vertex_arena.free(vblock)
+        if iblock >= 0:
+            self.index_arena.free(iblock)
         self.vertex_arena.maybe_compact()
         self.index_arena.maybe_compact()
-
-    def _new_slot(self) -> int:
-        if not self._free_slots:
-            old = self._slots.vertices.size
-            self._slots.grow(2 * old)
-            self._free_slots = list(range(2 * old - 1, old - 1, -1))
-        return self._free_slots.pop()
-
-    def _bind(self, rep: int, slot: int) -> None:
-        self.meshes[rep] = slot
-        if 0 <= rep < _DENSE_LIMIT:
-            if rep >= self._table.size:
-                table = np.full(1 << int(rep).bit_length(), -1, np.int32)
-                table[: self._table.size] = self._table
-                self._table = table
-            self._table[rep] = slot
-        else:
-            self._overflow[rep] = slot
-            self._overflow_keys = None
-
-    def _lookup(self, reps: np.ndarray) -> np.ndarray:
-        """Slots (s,) int of ``reps`` (s,) int64, −1 where not resident; vectorised."""
-        table = self._table
-        if reps.size == 0:
-            return np.zeros(0, np.int32)
-        if reps.min() >= 0 and reps.max() < table.size:
-            return table[reps]
-        slots = np.full(reps.size, -1, np.int32)
-        inside = (reps >= 0) & (reps < table.size)
-        slots[inside] = table[reps[inside]]
-        if self._overflow:
-            if self._overflow_keys is None:
-                keys = np.fromiter(self._overflow.keys(), np.int64, len(self._overflow))
-                order = np.argsort(keys)
-                self._overflow_keys = keys[order]
-                self._overflow_slots = np.fromiter(self._overflow.values(), np.int32, len(self._overflow))[order]
-            out = np.flatnonzero(~inside)
-            i = np.minimum(np.searchsorted(self._overflow_keys, reps[out]), self._overflow_keys.size - 1)
-            slots[out] = np.where(self._overflow_keys[i] == reps[out], self._overflow_slots[i], -1)
-        return slots
 
     # ----------------------------------------------------------------- arenas moved
 
@@ -612,91 +421,16 @@ class Renderer:
         non-finite arguments or algorithms out of range.
         """
         c0 = time.perf_counter()
-        reps = np.asarray(reps).ravel()
-        reps = reps.astype(np.int64, copy=False) if reps.dtype.kind in "iu" else reps.astype(np.int64)
-        s = reps.size
-        w = self._aligned(weights, s, np.float64, "weights")
-        alg = self._aligned(algorithms, s, np.int64, "algorithms")
-        lev = self._aligned(levels, s, np.float32, "levels")
-        if w is not None and not np.isfinite(w).all():
-            raise ValueError("morph weights must be finite")
-        if alg is not None and s and (alg.min() < 0 or alg.max() >= len(ALGORITHMS)):
-            raise ValueError(f"algorithms must lie in 0..{len(ALGORITHMS) - 1}")
-        if lev is not None and not np.isfinite(lev).all():
-            raise ValueError("levels must be finite")
-
-        slots = self._lookup(reps)
-        here = slots >= 0
-        n = int(np.count_nonzero(here))
-        if n < s:
-            self.missing += s - n
-            slots = slots[here]
-            w = None if w is None else w[here]
-            alg = None if alg is None else alg[here]
-            lev = None if lev is None else lev[here]
-        tables = self._slots
         eye = np.asarray(eye, np.float64)
         up = np.asarray(up, np.float64)
         forward = np.asarray(forward, np.float64)
         rotation = view_matrix(np.zeros(3), forward, up)
         vp64 = projection_matrix(self.fov_y, self.width / self.height, near, far) @ rotation
-        culled = 0
-        if self.cull and n:
-            # Frustum culling by bounding sphere (Gribb–Hartmann planes of the view-projection, normalised):
-            # the selection includes a margin around the view for where the camera is going, and on
-            # llvmpipe every submitted vertex is processed on the CPU, seen or not. One (6, 4) @ (4, s)
-            # product gives each centre's signed distance to each plane plus its radius; planes as rows, so
-            # the test reduces over contiguous rows (a reduction along the short axis of (s, 6) cost 4× more:
-            # 1.7 ms of the 3.8 ms a frame of 10k reps took to prepare).
-            planes = np.stack([vp64[3] + vp64[0], vp64[3] - vp64[0], vp64[3] + vp64[1], vp64[3] - vp64[1],
-                               vp64[3] + vp64[2], vp64[3] - vp64[2]])
-            planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
-            m = np.hstack([planes[:, :3], np.ones((6, 1))]).astype(np.float32)
-            d = m @ tables.sphere[slots].T
-            d += (planes[:, 3] - planes[:, :3] @ eye)[:, None]
-            seen = np.logical_and.reduce(d >= 0.0, axis=0)
-            culled = n - int(np.count_nonzero(seen))
-            if culled:
-                slots = slots[seen]
-                w = None if w is None else w[seen]
-                alg = None if alg is None else alg[seen]
-                lev = None if lev is None else lev[seen]
-                n -= culled
-        if alg is not None and n:  # group by algorithm, keeping the caller's order within each
-            masks = [alg == k for k in range(len(ALGORITHMS))]
-            order = np.concatenate([np.flatnonzero(m) for m in masks])  # three passes beat a sort
-            slots, alg = slots[order], alg[order]
-            w = None if w is None else w[order]
-            lev = None if lev is None else lev[order]
-            per_alg = np.array([np.count_nonzero(m) for m in masks])
-        else:
-            per_alg = np.array([n, 0, 0])
-
-        rows = np.empty(n, DRAW)
-        morphs = 0
-        if w is None:
-            rows["weight"] = 1.0
-            rows["flags"] = 0
-        else:
-            static = w >= 1.0
-            has_target = tables.target[slots]
-            morphing = ~static & has_target
-            morphs = int(np.count_nonzero(morphing))
-            self.unmorphed += int(np.count_nonzero(~static & ~has_target))
-            rows["weight"] = np.where(morphing, np.maximum(w, 0.0), 1.0)
-            rows["flags"] = morphing * np.uint32(_FLAG_MORPH)
-        rows["level"] = 0.0 if lev is None else lev
-        rows["tint"] = tables.tint[slots]
-        commands = tables.command[slots]
-        commands[:, 4] = np.arange(n, dtype=np.uint32)
-
-        faces, vertices = tables.faces[slots], tables.vertices[slots]
-        if alg is None or not n:
-            tri_alg = np.array([faces.sum(), 0, 0], np.int64)
-            vert_alg = np.array([vertices.sum(), 0, 0], np.int64)
-        else:
-            tri_alg = np.bincount(alg, weights=faces, minlength=len(ALGORITHMS)).astype(np.int64)
-            vert_alg = np.bincount(alg, weights=vertices, minlength=len(ALGORITHMS)).astype(np.int64)
+        plan = plan_frame(reps, self._slots, vp64, eye, weights=weights, algorithms=algorithms, levels=levels,
+                          cull=self.cull)
+        self.missing += plan.missing
+        self.unmorphed += plan.unmorphed
+        n, per_alg = len(plan), plan.draws
 
         if n > self._draw_capacity:  # orphaning keeps the buffers' names, so the VAOs stay valid
             while self._draw_capacity < n:
@@ -704,8 +438,8 @@ class Renderer:
             self._draw_rows.orphan(self._draw_capacity * DRAW.itemsize)
             self._commands.orphan(self._draw_capacity * 20)
         if n:
-            self._draw_rows.write(rows)
-            self._commands.write(commands)
+            self._draw_rows.write(plan.rows)
+            self._commands.write(plan.commands)
         if self._vaos_stale:
             self._build_vaos()
 
@@ -714,7 +448,7 @@ class Renderer:
         values = {
             "u_eye": tuple(eye),
             "u_up": tuple(up / np.linalg.norm(up)),
-            "u_sun": tuple(_key_light(forward, up)),
+            "u_sun": tuple(key_light(forward, up)),
             "u_false_colour": bool(self.false_colour),
             "u_level_scale": float(self.false_colour_levels),
             "u_eye_wrap": tuple(eye - _TEXTURE_PERIOD * np.floor(eye / _TEXTURE_PERIOD)),
@@ -749,19 +483,19 @@ class Renderer:
 
         pixels = [self._sample_queries[k].samples if count else 0 for k, count in enumerate(per_alg.tolist())]
         gpu = self._time_query.elapsed * 1e-9
-        terms = FrameTerms(triangles=tri_alg.tolist(), vertices=vert_alg.tolist(), pixels=pixels,
+        terms = FrameTerms(triangles=plan.triangles.tolist(), vertices=plan.vertices.tolist(), pixels=pixels,
                            draws=per_alg.astype(np.int64).tolist())
         return FrameStats(
             time=elapsed,
-            triangles=int(tri_alg.sum()),
-            vertices=int(vert_alg.sum()),
+            triangles=int(plan.triangles.sum()),
+            vertices=int(plan.vertices.sum()),
             draws=n,
-            morphs=morphs,
+            morphs=plan.morphs,
             pixels=int(sum(pixels)),
             gpu_time=gpu if self.gpu_time_plausible(gpu, elapsed, t2 - t1) else None,
             cpu_time=(c1 - c0) + (t1 - t0),
             prepare_time=c1 - c0,
-            culled=culled,
+            culled=plan.culled,
             splats=splats,
             terms=terms,
         )
@@ -780,18 +514,6 @@ class Renderer:
         the fence, so the query spans at least most of the wait.
         """
         return 0.0 < gpu_time <= wall_time * 1.1 + 1e-4 and gpu_time >= 0.5 * wait_time - 2e-4
-
-    @staticmethod
-    def _aligned(values: object, s: int, dtype: type, what: str) -> np.ndarray | None:
-        if values is None:
-            return None
-        a = np.asarray(values)
-        if a.shape != (s,):
-            raise ValueError(f"{what} must be aligned with reps ({s},), got {a.shape}")
-        if dtype is np.int64 and s and a.dtype.kind not in "iu":
-            if a.dtype.kind != "f" or not np.array_equal(a, np.round(a)):
-                raise ValueError(f"{what} must be integers")
-        return a.astype(dtype, copy=False)
 
     # ----------------------------------------------------------------- output
 

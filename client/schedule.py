@@ -24,54 +24,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from proto.morph import ramp_levels
+from proto.morph import LevelRamps
 
 __all__ = ["Drawn", "Schedule"]
-
-
-@dataclass(frozen=True)
-class _Phase:
-    """Rows keyed by object (sorted): a ramp level0 → level1 over [t0, t1), then level1."""
-
-    key: np.ndarray
-    level0: np.ndarray
-    level1: np.ndarray
-    t0: np.ndarray
-    t1: np.ndarray
-
-    @classmethod
-    def steady(cls, key, level, t: float) -> "_Phase":
-        key = np.asarray(key, np.int64)
-        level = np.asarray(level, np.float64)
-        order = np.argsort(key, kind="stable")
-        key, level = key[order], level[order]
-        if key.size > 1 and (np.diff(key) == 0).any():
-            raise ValueError("an object appears twice in one selection")
-        return cls(key, level, level.copy(), np.full(key.size, t), np.full(key.size, t))
-
-    def at(self, t: float) -> np.ndarray:
-        return ramp_levels(self.level0, self.level1, self.t0, self.t1, t)
-
-    def override(self, key, level0, level1, t0, t1) -> "_Phase":
-        """These rows with the given objects' ramps replaced (objects not here are added)."""
-        key = np.asarray(key, np.int64)
-        if key.size == 0:
-            return self
-        keep = ~np.isin(self.key, key)
-        k = np.concatenate([self.key[keep], key])
-        order = np.argsort(k, kind="stable")
-        cat = lambda a, b: np.concatenate([np.asarray(a, np.float64)[keep], np.asarray(b, np.float64)])[order]
-        return _Phase(k[order], cat(self.level0, level0), cat(self.level1, level1), cat(self.t0, t0), cat(self.t1, t1))
 
 
 @dataclass(frozen=True)
 class _Generation:
     start: float
     switch: float
-    before: _Phase  # governs [start, switch)
-    after: _Phase  # governs [switch, ∞)
+    before: LevelRamps  # governs [start, switch)
+    after: LevelRamps  # governs [switch, ∞)
 
-    def phase(self, t: float) -> _Phase:
+    def phase(self, t: float) -> LevelRamps:
         return self.before if t < self.switch else self.after
 
 
@@ -92,7 +57,7 @@ class Drawn:
         return int(self.key.size)
 
 
-_EMPTY = _Phase(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+_EMPTY = LevelRamps.empty()
 
 
 class Schedule:
@@ -131,7 +96,7 @@ class Schedule:
             raise ValueError(f"bad schedule window start={start} switch={switch}")
         rk, r0, r1, rt0, rt1 = (np.asarray(a) for a in ramps) if len(ramps) else (np.zeros(0, np.int64),) + (np.zeros(0),) * 4
         rk = rk.astype(np.int64)
-        after = _Phase.steady(key, level, switch)
+        after = LevelRamps.steady(key, level, switch)
         down = rt0 < switch
         up = ~down
         if np.isin(rk[up], after.key, invert=True).any():
@@ -163,9 +128,9 @@ class Schedule:
         jump = shared & (np.abs(old.level[pos_c] - new_level) > 1e-9) if old.key.size else shared
         if not jump.any():
             return gen, True
-        level1 = phase.level1
+        level_to = phase.level_to
         t1 = np.where(jump, np.maximum(np.where(phase.t1 > now, phase.t1, now), now + self.min_ramp), phase.t1)
-        fixed = _Phase(phase.key, np.where(jump, old.level[pos_c], phase.level0), level1,
+        fixed = LevelRamps(phase.key, np.where(jump, old.level[pos_c], phase.level_from), level_to,
                        np.where(jump, now, phase.t0), t1)
         if now < gen.switch:
             return _Generation(gen.start, gen.switch, fixed, gen.after), True

@@ -153,7 +153,7 @@ class SplatLayer:
         self._warm_up()
 
     def _warm_up(self) -> None:
-        """Draw one splat into a scratch target, so llvmpipe's shader compile (tens of ms) is not in frame 0."""
+        """Draw one splat into a scratch target, so the shader's compile at its first draw is not in frame 0."""
         point = np.zeros(1, POINT)
         point["normal"] = (0, 0, 1)
         inst = np.zeros(1, INSTANCE)
@@ -398,7 +398,7 @@ class SplatLayer:
         if np.linalg.norm(forward) < 1e-12:
             forward = -vp[2, :3]
         right, up, forward = (v / max(np.linalg.norm(v), 1e-300) for v in (right, up, forward))
-        sun = -forward + 0.6 * up + 0.35 * right  # as client.renderer._key_light
+        sun = -forward + 0.6 * up + 0.35 * right  # as client.shading.key_light
         prog = self.program
         prog["u_view_projection"].write(vp.T.astype("f4").tobytes())
         prog["u_eye"].value = tuple(eye)

@@ -25,8 +25,8 @@ def normalize(v: np.ndarray) -> np.ndarray:
 
 
 def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3,) float64 cross product of two 3-vectors: np.cross's general machinery costs ~50 µs a call, which a
-    frame that builds its camera from a pose pays several times over (the client's per-frame budget is 2 ms)."""
+    """(3,) float64 cross product of two 3-vectors: np.cross's general machinery costs far more than the
+    arithmetic, and a frame that builds its camera from a pose pays it several times over."""
     a0, a1, a2 = (float(x) for x in np.asarray(a, np.float64).reshape(3))
     b0, b1, b2 = (float(x) for x in np.asarray(b, np.float64).reshape(3))
     return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])

@@ -47,7 +47,7 @@ PROTOCOL_VERSION = 5
 #: Rendering algorithms (Funkhouser & Séquin's R), cheapest first; an index into this is an ``algorithm``.
 ALGORITHMS = ("flat", "lit", "textured")
 Algorithm = Annotated[int, Field(ge=0, lt=len(ALGORITHMS))]
-AlgorithmName = Literal["flat", "lit", "textured"]
+AlgorithmName = Literal[ALGORITHMS]
 
 #: Coordinates beyond this are refused: they would lose all precision in float32.
 MAX_COORD = 1.0e7
@@ -138,7 +138,7 @@ class Hello(_Message):
     #: None: the server's default. The server's mirror never exceeds it; the client refuses what would.
     cache_bytes: Annotated[int, Field(ge=1 << 16, le=1 << 40)] | None = None
     #: Rendering algorithms the client offers (``ALGORITHMS``); the selection picks one per representation.
-    algorithms: Annotated[list[AlgorithmName], Field(min_length=1, max_length=3)] = ["flat"]
+    algorithms: Annotated[list[AlgorithmName], Field(min_length=1, max_length=len(ALGORITHMS))] = ["flat"]
     #: Resume an earlier session: its cost model, camera history and pipeline carry on (protocol 4).
     resume: Resume | None = None
     #: What the client already holds: ``proto.manifest.pack_held`` of its representation ids (a zlib'd bitset).

@@ -1,4 +1,6 @@
-"""Geomorph maps: for each vertex of a level, the vertex of the next coarser level it morphs to.
+"""Geomorphs on the wire: vertex maps between levels, and the ramps a schedule is made of.
+
+A morph map gives, for each vertex of a level, the vertex of the next coarser level it morphs to.
 
 Stored next to a level's geometry and sent with it, so the client can blend
 level k toward level k − 1 (``server.scene.lod``). Vertex ids are the stored
@@ -12,11 +14,18 @@ Payload (a msgpack map)::
     data  bytes      meshoptimizer index-sequence codec over the n entries (uint32)
 
 The index-sequence codec (zigzag deltas against recent values, then a byte
-coder) takes about 8.5 bits per entry on maps from edge collapses, a little
-better than zstd over the raw uint16/uint32 entries.
+coder) suits maps from edge collapses, whose entries repeat and move little:
+it packs them tighter than zstd over the raw uint16/uint32 entries.
+
+A schedule makes every object's level a piecewise-linear function of time; its
+pieces are ramps (``ramp_levels``, one ``Morphs`` row each). ``LevelRamps`` is
+the table of one ramp per object that the server's scheduler (``server.select.morph``)
+plans with and the client's executor (``client.schedule``) draws from.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import meshoptimizer
 import msgpack
@@ -25,7 +34,7 @@ import numpy as np
 from .errors import ProtocolError
 from .geometry import MAX_VERTICES
 
-__all__ = ["MORPH_ENCODING", "encode_morph", "decode_morph", "ramp_levels"]
+__all__ = ["MORPH_ENCODING", "encode_morph", "decode_morph", "ramp_levels", "LevelRamps"]
 
 MORPH_ENCODING = "mm1"
 
@@ -96,16 +105,65 @@ def decode_morph(blob: bytes, n_fine: int | None = None, n_coarse: int | None = 
     return seq
 
 
-def ramp_levels(level0, level1, t0, t1, t: float) -> np.ndarray:
-    """What a ``Morphs`` entry means: the level of ramps level0 → level1 over [t0, t1) at time t.
+def ramp_levels(level_from, level_to, t0, t1, t: float) -> np.ndarray:
+    """What a ``Morphs`` entry means: the level of a ramp level_from → level_to over [t0, t1) at time t.
 
-    level0 before t0, level1 from t1 on, linear between (arrays broadcast). Both
-    the server's scheduler and the client's executor read schedules through this.
+    level_from before t0, level_to from t1 on, linear between (arrays broadcast).
+    Both the server's scheduler and the client's executor read schedules through this.
     """
     t0 = np.asarray(t0, np.float64)
     t1 = np.asarray(t1, np.float64)
     span = t1 - t0
     f = np.where(span > 0, (t - t0) / np.where(span > 0, span, 1.0), (t >= t1).astype(np.float64))
     f = np.clip(f, 0.0, 1.0)
-    level0 = np.asarray(level0, np.float64)
-    return level0 + (np.asarray(level1, np.float64) - level0) * f
+    level_from = np.asarray(level_from, np.float64)
+    return level_from + (np.asarray(level_to, np.float64) - level_from) * f
+
+
+@dataclass(frozen=True)
+class LevelRamps:
+    """Every object's level as one ramp, then steady: the ramp structure both ends of a schedule keep.
+
+    key        : (p,) int64, sorted — the object (its level-0 representation id; for vegetation, its group's)
+    level_from, level_to : (p,) float — the level ramps level_from → level_to over [t0, t1) and stays at level_to
+    t0, t1     : (p,) float
+    The names are the ``Morphs`` columns': a row of a delta's ramps is a row of this.
+    """
+
+    key: np.ndarray
+    level_from: np.ndarray
+    level_to: np.ndarray
+    t0: np.ndarray
+    t1: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "LevelRamps":
+        z = np.zeros(0)
+        return cls(np.zeros(0, np.int64), z, z, z, z)
+
+    @classmethod
+    def steady(cls, key, level, t: float) -> "LevelRamps":
+        """Objects (any order) held at ``level`` from t on; raises ValueError if an object appears twice."""
+        key = np.asarray(key, np.int64)
+        level = np.asarray(level, np.float64)
+        order = np.argsort(key, kind="stable")
+        key, level = key[order], level[order]
+        if key.size > 1 and (np.diff(key) == 0).any():
+            raise ValueError("an object appears twice in one selection")
+        return cls(key, level, level.copy(), np.full(key.size, t), np.full(key.size, t))
+
+    def at(self, t: float) -> np.ndarray:
+        """(p,) float — every object's level at time t."""
+        return ramp_levels(self.level_from, self.level_to, self.t0, self.t1, t)
+
+    def override(self, key, level_from, level_to, t0, t1) -> "LevelRamps":
+        """These rows with the given objects' ramps replaced (objects not here are added)."""
+        key = np.asarray(key, np.int64)
+        if key.size == 0:
+            return self
+        keep = ~np.isin(self.key, key)
+        k = np.concatenate([self.key[keep], key])
+        order = np.argsort(k, kind="stable")
+        cat = lambda a, b: np.concatenate([np.asarray(a, np.float64)[keep], np.asarray(b, np.float64)])[order]
+        return LevelRamps(k[order], cat(self.level_from, level_from), cat(self.level_to, level_to),
+                          cat(self.t0, t0), cat(self.t1, t1))

@@ -23,7 +23,9 @@ from collections import deque
 import numpy as np
 import pytest
 
-from client.app import ClientRun, _Arrived, _Loop
+from client.connection import Arrived
+from client.frame_loop import FrameLoop
+from client.records import ClientRun
 from client.cache import ResidentCache
 from proto import PROTOCOL_VERSION
 from proto.codec import decode_client, decode_server, encode
@@ -329,13 +331,13 @@ class _Socket:
 
 
 def test_the_loop_feeds_renderer_and_splats_and_acks_what_it_holds(denhaag):
-    """``_Loop.handle``: meshes to the renderer, groups and models to the splat layer, the cache's state acked."""
+    """``FrameLoop.handle``: meshes to the renderer, groups and models to the splat layer, the cache's state acked."""
     budget = 400_000  # half the store: the mirror evicts, and tree groups still fit
     pair = Pair(denhaag, solver="mixed", hello_bytes=budget)
     welcome = Welcome(session="x", protocol=PROTOCOL_VERSION, scene="denhaag", bounds=pair.index.bounds.tolist(),
                       start=Pose(**pair.index.start), tau=0.5, solver="mixed")
     run, ws = ClientRun(welcome=welcome), _Socket()
-    loop = _Loop(run, _Renderer(), queue.Queue(), ws, cache_bytes=budget)
+    loop = FrameLoop(run, _Renderer(), queue.Queue(), ws, cache_bytes=budget)
     assert loop.splats is None
     loop.splats = _Splats()
     keys = pair.index.tour[:40]
@@ -344,7 +346,7 @@ def test_the_loop_feeds_renderer_and_splats_and_acks_what_it_holds(denhaag):
         pair.s.receive(encode(Camera(t=float(i), **pose)), float(i))
         for m in pair.s.poll(max(float(i), pair.s.next_deadline())):
             if isinstance(m, Delta):
-                loop.handle(_Arrived(decode_server(encode(m)), float(i)))
+                loop.handle(Arrived(decode_server(encode(m)), float(i)))
                 for ack in ws.sent:
                     pair.s.receive(encode(ack), float(i))
                 ws.sent.clear()

@@ -12,7 +12,9 @@ import pytest
 import trimesh
 from websockets.sync.server import Server, ServerConnection, serve
 
-from client.app import ClientError, FrameRecord, run_client
+from client.app import run_client
+from client.connection import ClientError
+from client.records import FrameRecord
 from proto.codec import decode_client, encode
 from proto.geometry import encode_geometry
 from proto.messages import (

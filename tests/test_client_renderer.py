@@ -250,7 +250,9 @@ def test_morph_target_shape_checked_and_freed_with_the_rep(renderer: Renderer) -
 
 # ----------------------------------------------------------------------------- batching, algorithms, measurement
 
-from client.renderer import ALGORITHMS, FrameTerms, smooth_normals, target_normals  # noqa: E402
+from client.renderer import FrameTerms  # noqa: E402
+from client.shading import smooth_normals, target_normals  # noqa: E402
+from proto.messages import ALGORITHMS  # noqa: E402
 
 _BG = np.round(np.array(BACKGROUND) * 255)
 

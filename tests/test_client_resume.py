@@ -21,7 +21,9 @@ from hypothesis import strategies as st
 
 from bench.demo import ServerProcess
 from bench.netem import DelayProxy
-from client.app import ClientRun, FrameRecord, _with_client, run_client
+from client.app import run_client
+from client.connection import with_client
+from client.records import ClientRun, FrameRecord
 
 VIEW = (160, 90)
 ADMIN = "resume-test-admin-token"
@@ -201,13 +203,13 @@ def test_client_id_goes_in_the_query_and_keeps_the_rest(query: dict, uid) -> Non
     from urllib.parse import urlencode
 
     url = "ws://host:1/ws" + ("?" + urlencode(query) if query else "")
-    out = _with_client(url, uid.hex)
+    out = with_client(url, uid.hex)
     parts = urlsplit(out)
     pairs = parse_qsl(parts.query, keep_blank_values=True)
     assert (parts.scheme, parts.netloc, parts.path) == ("ws", "host:1", "/ws")
     assert [v for k, v in pairs if k == "client"] == [uid.hex]
     assert {k: v for k, v in pairs if k != "client"} == {k: v for k, v in query.items() if k != "client"}
-    assert _with_client(out, uid.hex) == out  # idempotent: a redial does not stack ids
+    assert with_client(out, uid.hex) == out  # idempotent: a redial does not stack ids
 
 
 def test_busy_server_is_retried_on_first_connect(servers) -> None:

@@ -7,7 +7,7 @@ import pytest
 
 from bench import quality
 from bench.replay import Replayer
-from client.app import FrameTrace
+from client.records import FrameTrace
 from client.navigation import Tour
 from server.scene.store import SceneStore
 

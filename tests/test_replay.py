@@ -7,7 +7,7 @@ import pytest
 
 from bench import quality
 from bench.replay import Replayer, finest_cut, tree_groups
-from client.app import FrameTrace
+from client.records import FrameTrace
 from client.navigation import Tour
 from server.scene.index import TREES
 from server.scene.store import SceneStore

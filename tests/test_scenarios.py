@@ -20,7 +20,7 @@ from bench.scenarios import (
     level_jumps, network_verdict, oscillation_path, oscillation_verdict, print_results, recovery_time, reset_times,
     run_scenarios, spin_path, spin_verdict, straight_path, tour_segment, turn_path, turn_verdict, window_stats,
 )
-from client.app import FrameRecord, FrameTrace
+from client.records import FrameRecord, FrameTrace
 from client.navigation import Tour
 from server.scene.store import SceneStore
 

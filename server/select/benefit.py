@@ -18,9 +18,10 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
+from proto.messages import ALGORITHMS
+
 __all__ = [
     "BASE_ERROR",
-    "ALGORITHMS",
     "ALGORITHM_EXPONENT",
     "ALGORITHM_SAMPLES",
     "MIN_FACTOR",
@@ -41,9 +42,6 @@ __all__ = [
 ]
 
 BASE_ERROR = 0.5
-
-#: Rendering algorithms, cheapest first; option k uses ALGORITHMS[k % R].
-ALGORITHMS = ("flat", "lit", "textured")
 
 #: F&S's exponent m per interpolation method: flat = 1, Gouraud = 2. Textured
 #: surfaces are Gouraud-lit here, so they interpolate like "lit".

@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from proto.morph import ramp_levels
+from proto.morph import LevelRamps
 
-__all__ = ["Plan", "Transitions", "MorphScheduler", "mark", "rep_parents"]
+__all__ = ["Transitions", "MorphScheduler", "mark", "rep_parents"]
 
 
 def rep_parents(rep_level: np.ndarray, rep_object: np.ndarray, object_parent: np.ndarray,
@@ -92,31 +92,6 @@ def mark(rep_parent: np.ndarray, black: np.ndarray, new: np.ndarray) -> tuple[np
     return kind, source
 
 
-@dataclass
-class Plan:
-    """What the last schedule draws from its switch s on: per object, one ramp then its level.
-
-    key        : (p,) int64, sorted — the object (its level-0 representation id; for vegetation, its group's)
-    level0, level1 : (p,) float — the object's level ramps level0 → level1 over [t0, t1) and stays at level1
-    t0, t1     : (p,) float
-    """
-
-    key: np.ndarray
-    level0: np.ndarray
-    level1: np.ndarray
-    t0: np.ndarray
-    t1: np.ndarray
-
-    @classmethod
-    def empty(cls) -> "Plan":
-        z = np.zeros(0)
-        return cls(np.zeros(0, np.int64), z, z, z, z)
-
-    def at(self, t: float) -> np.ndarray:
-        """(p,) float — every object's level at time t."""
-        return ramp_levels(self.level0, self.level1, self.t0, self.t1, t)
-
-
 @dataclass(frozen=True)
 class Transitions:
     """One schedule: the ramps a delta carries and what the client must keep resident for it.
@@ -152,7 +127,7 @@ class MorphScheduler:
             raise ValueError(f"tau must be positive, got {tau}")
         self.tau = float(tau)
         self.morph = bool(morph)
-        self.plan = Plan.empty()
+        self.plan = LevelRamps.empty()  # what the last schedule draws from its switch s on
         self.switch: float | None = None
         self._kept = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
 
@@ -175,7 +150,7 @@ class MorphScheduler:
         empty = np.zeros(0)
         stats = {"up": 0, "down": 0, "collapsed": 0, "switches": 0, "appear": 0, "vanish": 0, "steady": 0}
         if reset or not self.morph or prev.key.size == 0:
-            self.plan = Plan(key, level, level, np.full(key.size, switch), np.full(key.size, switch))
+            self.plan = LevelRamps(key, level, level, np.full(key.size, switch), np.full(key.size, switch))
             stats["appear"] = int(key.size)
             needed = (key, level, level)
             out_needed = self._union(needed, self._kept if not reset else None)
@@ -186,7 +161,7 @@ class MorphScheduler:
         pos = np.searchsorted(prev.key, key)
         pos_c = np.minimum(pos, max(prev.key.size - 1, 0))
         both = (pos < prev.key.size) & (prev.key[pos_c] == key)
-        p_level = np.where(both, prev.level1[pos_c], np.nan)
+        p_level = np.where(both, prev.level_to[pos_c], np.nan)
         a_level = np.where(both, at_start[pos_c], np.nan)
         if kind is None:
             up = both & (level > p_level)
@@ -196,7 +171,7 @@ class MorphScheduler:
             up = both & (kind > 0) & (level > p_level)
             down = both & (kind < 0) & (level < p_level)
             stats["switches"] = int(((kind != 0) & ~both).sum())
-        ramping = both & (prev.level0[pos_c] != prev.level1[pos_c]) & (prev.t1[pos_c] > start)
+        ramping = both & (prev.level_from[pos_c] != prev.level_to[pos_c]) & (prev.t1[pos_c] > start)
         stats.update(up=int(up.sum()), down=int(down.sum()), collapsed=int((down & ramping).sum()),
                      appear=int((~both).sum()), vanish=int(prev.key.size - both.sum()),
                      steady=int((both & ~up & ~down).sum()))
@@ -219,7 +194,7 @@ class MorphScheduler:
         out_t0 = np.concatenate([np.full(d.size, start), np.full(u.size, switch)])
         out_t1 = np.concatenate([np.full(d.size, switch), np.full(u.size, t_up)])
 
-        self.plan = Plan(
+        self.plan = LevelRamps(
             key,
             np.where(up, p_level, level),
             level,
@@ -227,15 +202,15 @@ class MorphScheduler:
             np.where(up, t_up, switch).astype(np.float64),
         )
         # What is drawn from start on: the previous plan's objects until switch (as overridden), then the new.
-        lo_prev = np.minimum(prev.level0, prev.level1)
-        hi_prev = np.maximum(prev.level0, prev.level1)
+        lo_prev = np.minimum(prev.level_from, prev.level_to)
+        hi_prev = np.maximum(prev.level_from, prev.level_to)
         if d.size:
             pd = pos[d]
             lo_prev = lo_prev.copy()
             hi_prev = hi_prev.copy()
             lo_prev[pd] = np.minimum(lo_prev[pd], level[d])
-        lo_new = np.minimum(self.plan.level0, level)
-        hi_new = np.maximum(self.plan.level0, level)
+        lo_new = np.minimum(self.plan.level_from, level)
+        hi_new = np.maximum(self.plan.level_from, level)
         needed = self._union((prev.key, lo_prev, hi_prev), (key, lo_new, hi_new))
         out_needed = self._union(needed, self._kept)
         self._kept, self.switch = needed, switch

@@ -1,0 +1,124 @@
+"""What the mesh shaders read that the CPU works out: vertex records, normals, tints, the key light.
+
+A representation's vertices are stored once, at upload, as ``VERTEX`` records:
+its position, its morph target (the position on the next coarser level; the
+position itself until one is set) and the smooth normals at both, so the lit
+algorithm morphs its shading along with the shape. Normals are packed in
+bytes (n·½+½, the shader's normalised ``4f1``). Everything here is numpy over
+whole meshes, no GL: the renderer writes the results into its arenas.
+"""
+
+from __future__ import annotations
+
+import colorsys
+
+import numpy as np
+
+from proto.camera import cross3
+
+__all__ = ["VERTEX", "vertex_records", "smooth_normals", "target_normals", "pack_normals", "object_tint",
+           "packed_tint", "key_light"]
+
+#: Vertex record: world position, morph target (= position until set), smooth normal and the target's normal
+#: (n·½+½ in normalised bytes, 4th byte padding). 32 bytes.
+VERTEX = np.dtype([("position", "<f4", 3), ("target", "<f4", 3), ("normal", "u1", 4), ("target_normal", "u1", 4)])
+_AXES = np.arange(3)
+
+
+def vertex_records(positions: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """(nv,) ``VERTEX`` records of a mesh without a morph target (the target is the position itself).
+
+    positions : (nv, 3) float32; indices : (nf, 3) uint32, every entry < nv
+    """
+    records = np.empty(positions.shape[0], VERTEX)
+    records["position"] = positions
+    records["target"] = positions
+    records["normal"] = pack_normals(smooth_normals(positions, indices))
+    records["target_normal"] = records["normal"]
+    return records
+
+
+def object_tint(object_id: int) -> tuple[float, float, float]:
+    """A muted colour that is stable per object id (integer hash → hue)."""
+    h = (int(object_id) * 0x9E3779B1 + 0x7F4A7C15) & 0xFFFFFFFF
+    h ^= h >> 16
+    h = (h * 0x85EBCA6B) & 0xFFFFFFFF
+    h ^= h >> 13
+    hue = (h & 0xFFFF) / 65536.0
+    value = 0.75 + 0.2 * ((h >> 16) & 0xFF) / 255.0
+    r, g, b = colorsys.hsv_to_rgb(hue, 0.35, value)
+    return (r, g, b)
+
+
+def packed_tint(object_id: int) -> int:
+    r, g, b = (round(255 * c) for c in object_tint(object_id))
+    return r | (g << 8) | (b << 16) | (255 << 24)
+
+
+def smooth_normals(positions: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """(nv, 3) float32 unit vertex normals: area-weighted face normals summed per vertex (vectorised).
+
+    Simplified meshes do not keep a consistent winding, so a second pass flips
+    each face normal to agree with the first pass's sum at its corners before
+    summing again: a minority of flipped faces no longer cancels its
+    neighbours. Vertices without (non-degenerate) faces get +z.
+    """
+    p = np.asarray(positions, np.float64).reshape(-1, 3)
+    f = np.asarray(indices, np.intp).reshape(-1, 3)
+    nv = p.shape[0]
+    if not f.size:
+        out = np.zeros((nv, 3), np.float32)
+        out[:, 2] = 1.0
+        return out
+    tri = p[f]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    face = e1[:, [1, 2, 0]] * e2[:, [2, 0, 1]] - e1[:, [2, 0, 1]] * e2[:, [1, 2, 0]]  # cross, cheaper than np.cross
+    slots = ((f * 3)[:, :, None] + _AXES).ravel()  # (face, corner, axis) → vertex·3 + axis
+    first = np.bincount(slots, weights=np.repeat(face, 3, axis=0).ravel(), minlength=3 * nv).reshape(nv, 3)
+    face[np.einsum("ij,ikj->i", face, first[f]) < 0] *= -1.0
+    out = np.bincount(slots, weights=np.repeat(face, 3, axis=0).ravel(), minlength=3 * nv).reshape(nv, 3)
+    norm = np.sqrt(np.einsum("ij,ij->i", out, out))
+    bad = norm <= 1e-30
+    norm[bad] = 1.0
+    out /= norm[:, None]
+    out[bad] = (0.0, 0.0, 1.0)
+    return out.astype(np.float32)
+
+
+def target_normals(targets: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """(nv, 3) float32 normals for a level's vertices at their morph targets: the coarser level's smooth normals.
+
+    At w = 0 a level's triangles collapse onto the coarser level's: those whose
+    corners meet degenerate (zero area, no weight) and the rest are the coarser
+    triangles. So the smooth normals of the collapsed mesh, with the vertices
+    that share a target position merged into one, are the coarser level's
+    normals (up to summation order), and the lit algorithm morphs its shading
+    along with the shape instead of popping at the switch.
+    """
+    t = np.asarray(targets, np.float32).reshape(-1, 3)
+    if t.shape[0] == 0:
+        return np.zeros((0, 3), np.float32)
+    unique, inverse = np.unique(t, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    return smooth_normals(unique, inverse[np.asarray(indices, np.intp).reshape(-1, 3)])[inverse]
+
+
+def pack_normals(normals: np.ndarray) -> np.ndarray:
+    """(nv, 4) uint8: unit normals as n·½+½ in bytes (the shader's normalised 4f1), padding 255."""
+    packed = np.full((normals.shape[0], 4), 255, np.uint8)
+    packed[:, :3] = normals * 127.5 + 128.0  # in [0.5, 255.5) for unit vectors: truncation rounds to nearest
+    return packed
+
+
+def key_light(forward: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Unit direction (3,) towards a light carried above, behind and right of the camera.
+
+    A camera-borne key light lights every visible face (no black backs in a
+    walkthrough) while the angle still separates the faces of a shape.
+    """
+    f = forward / np.linalg.norm(forward)
+    s = cross3(f, up)
+    s /= np.linalg.norm(s)
+    u = cross3(s, f)
+    light = -f + 0.6 * u + 0.35 * s
+    return light / np.linalg.norm(light)
