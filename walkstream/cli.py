@@ -74,12 +74,12 @@ def client(
 
 app.command()(server_cli.build)
 app.command()(server_cli.inspect)
-app.add_typer(bench_cli.bench_app, name="bench")
 app.command()(server_cli.serve)
 app.command()(client)
 app.command()(bench_cli.demo)
 app.command()(bench_cli.loadtest)
 app.command("eval")(bench_cli.eval_)
+app.add_typer(bench_cli.bench_app, name="bench")
 
 
 def main() -> None:

@@ -16,7 +16,10 @@ import numpy as np
 from proto.manifest import mix
 from proto.messages import ALGORITHMS, PROTOCOL_VERSION
 
-__all__ = ["RendererModel", "HeldSet", "payload_counts", "unframe", "ClientConfig", "SimulatedClient", "VIEWPORTS", "CLIENT_NAME"]
+__all__ = [
+    "RendererModel", "HeldSet", "payload_counts", "unframe", "ClientConfig", "SimulatedClient", "VIEWPORTS",
+    "CLIENT_NAME",
+]
 
 
 #: Viewports the simulated clients pick from (a mix of screens, as real users bring).

@@ -11,7 +11,10 @@ import numpy as np
 
 from bench.report.results import budget_free, finite, method_order, nearly_equal, run_at, target_of
 
-__all__ = ["STD_RATIO_LIMIT", "MAX_RATIO_LIMIT", "quality_points", "pareto", "pareto_miss", "point_label", "verdict_word", "bound_frames", "checks"]
+__all__ = [
+    "STD_RATIO_LIMIT", "MAX_RATIO_LIMIT", "quality_points", "pareto", "pareto_miss", "point_label", "verdict_word",
+    "bound_frames", "checks",
+]
 
 
 #: The done-when limits: Optimization's std ≤ a third of Static's and Feedback's, max ≤ 1.10 × target.
@@ -163,9 +166,9 @@ def bound_frames(results: dict, target_ms: float | None = None) -> dict | None:
     run, at the same tour time) takes longer than the target.
 
     F&S's Table 1 std is over the whole path, and on a path with a cheap stretch (the auditorium's viewpoint
-    B: full detail 15 ms against 50) every method draws fast frames there — none has anything to spend the
-    budget on — so the std measures the stretch as much as the method. Over the frames where full detail
-    exceeds the target, a method that holds the budget shows a steady time. Frames are those after the
+    B, where full detail is well under the target) every method draws fast frames there — none has anything
+    to spend the budget on — so the std measures the stretch as much as the method. Over the frames where
+    full detail exceeds the target, a method that holds the budget shows a steady time. Frames are those after the
     warm-up that draw a selection; None's time at t is interpolated between its frames. Returns
     {"share": share of the optimization run's frames that are bound, "methods": {method: {frames,
     frame_mean_ms, frame_std_ms, frame_max_ms}}}, or None without a ``none`` run.
@@ -207,13 +210,13 @@ def bound_frames(results: dict, target_ms: float | None = None) -> dict | None:
 
 
 def checks(results: dict) -> list[dict]:
-    """The issue's done-when checks at the headline target, each {name, passed, value, limit, line}.
+    """The evaluation's done-when checks at the headline target, each {name, passed, value, limit, line}.
 
     - ``opt_std_vs_static`` / ``opt_std_vs_feedback``: value = Optimization's frame-time std ÷ the other's,
       limit 1/3 (at the limit passes);
     - ``opt_max``: value = Optimization's max frame time ÷ target, limit 1.10;
     - ``opt_std_bound_vs_static`` / ``opt_std_bound_vs_feedback``: the std checks over the frames where full
-      detail exceeds the target (``bound_frames``; beyond the issue's checks: where the budget binds);
+      detail exceeds the target (``bound_frames``; beyond the headline checks: where the budget binds);
     - ``opt_pareto`` / ``pred_pareto``: the method's point at the target against every (method, budget)
       point of the quality chart; value = the smallest relative improvement of frame time or FLIP that
       puts it on the front (0 on it), limit 0; ``budgets`` gives that figure for each of its budgets.

@@ -14,7 +14,7 @@ from bench.jsonable import jsonable
 from bench.report.checks import checks, verdict_word
 from bench.report.figures import write_quality, write_traces
 from bench.report.results import METHOD_ORDER, finite, target_of
-from bench.report.table import cells, fmt_cell, headings, table1, write_table1
+from bench.report.table import fmt_cell, row_cells, table1, table_headings, write_table1
 
 __all__ = ["write_checks", "summary_lines", "write_index", "write_report"]
 
@@ -38,7 +38,7 @@ def summary_lines(results: dict) -> list[str]:
     target = target_of(results, None)
     rows = table1(results)
     lines = [f"Table 1 — {results.get('scene', '?')}, target {target:g} ms (times in ms)"]
-    lines += _text_table(headings(), [cells(r) for r in rows]) if rows else ["(no runs at the target)"]
+    lines += _text_table(table_headings(), [row_cells(r) for r in rows]) if rows else ["(no runs at the target)"]
     lines += [""] + [c["line"] for c in checks(results)]
     return lines
 
@@ -98,9 +98,10 @@ def write_index(results: dict, out: Path, *, rows: Sequence[dict], results_check
         "change over the full-detail sequence.</p>",
     ]
     if rows:
-        parts.append("<table><thead><tr>" + "".join(f"<th>{e(h)}</th>" for h in headings()) + "</tr></thead><tbody>")
+        heads = "".join(f"<th>{e(h)}</th>" for h in table_headings())
+        parts.append("<table><thead><tr>" + heads + "</tr></thead><tbody>")
         for row in rows:
-            cells = cells(row)
+            cells = row_cells(row)
             parts.append("<tr><td>" + e(cells[0]) + "</td>" + "".join(f'<td class="num">{e(c)}</td>' for c in cells[1:])
                          + "</tr>")
         parts.append("</tbody></table>")

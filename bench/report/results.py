@@ -9,7 +9,9 @@ from typing import Any
 
 from bench.methods import METHODS
 
-__all__ = ["METHOD_ORDER", "BUDGET_FREE", "finite", "nearly_equal", "method_order", "target_of", "budget_free", "run_at"]
+__all__ = [
+    "METHOD_ORDER", "BUDGET_FREE", "finite", "nearly_equal", "method_order", "target_of", "budget_free", "run_at",
+]
 
 
 #: F&S Table 1's order, then the methods of Zach (2002) and Zach, Mantler & Karner (2002).

@@ -13,7 +13,7 @@ import numpy as np
 
 from bench.report.results import method_order, run_at, target_of
 
-__all__ = ["COLUMNS", "table1", "fmt_cell", "headings", "cells", "write_table1"]
+__all__ = ["COLUMNS", "table1", "fmt_cell", "table_headings", "row_cells", "write_table1"]
 
 
 #: Table 1's columns: (key in the row and in a run's summary, markdown heading, decimals).
@@ -79,11 +79,11 @@ def fmt_cell(value: Any, decimals: int) -> str:
     return f"{v:,.{decimals}f}" if decimals == 0 else f"{v:.{decimals}f}"
 
 
-def headings() -> list[str]:
+def table_headings() -> list[str]:
     return ["method"] + [f"{label} (ms)" if key.endswith("_ms") else label for key, label, _ in COLUMNS]
 
 
-def cells(row: dict) -> list[str]:
+def row_cells(row: dict) -> list[str]:
     return [str(row["method"])] + [fmt_cell(row.get(key), dec) for key, _, dec in COLUMNS]
 
 
@@ -101,10 +101,10 @@ def write_table1(rows: Sequence[dict], out: Path, *, title: str | None = None) -
         writer.writeheader()
         for row in rows:
             writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in keys})
-    heads = headings()
+    heads = table_headings()
     lines = [f"# {title}", ""] if title else []
     lines += ["| " + " | ".join(heads) + " |", "|" + "|".join(["---"] + ["---:"] * (len(heads) - 1)) + "|"]
-    lines += ["| " + " | ".join(cells(row)) + " |" for row in rows]
+    lines += ["| " + " | ".join(row_cells(row)) + " |" for row in rows]
     lines += ["", "Times in milliseconds; frame figures over the frames after the warm-up. FLIP: mean LDR-FLIP "
               "against the full-detail frame (lower is better); popping: excess frame-to-frame change over "
               "the full-detail sequence (lower is better)."]
