@@ -1,13 +1,13 @@
 """``walkstream bench build``: how fast scenes build, how big their stores are, how fast they open.
 
-The machine is shared and noisy, so next to each figure stands a reference
+A shared machine is noisy, so next to each figure stands a reference
 measured in the same run: the raw throughput of the quadric simplifier
 (fast-simplification halving a fixed 81k-triangle mesh), the step every
 build's chain stage is made of. ``ratio`` = build triangles/s ÷ simplifier
 triangles/s says how much of the build is the simplifier's own work.
 
-Goals (issue 3): megacity builds in under 10 minutes on a 2-core machine and
-its index loads in at most 2 s.
+Goals: megacity builds in under 10 minutes on two cores and its index loads
+in at most 2 s.
 """
 
 from __future__ import annotations

@@ -1,144 +1,21 @@
-"""The ``walkstream`` command line.
+"""The benchmarks' and evaluations' commands: ``walkstream demo``, ``loadtest``, ``eval`` and ``bench ...``.
 
-It lives in ``bench`` because it ties every part together (``bench`` may import
-everything); each command imports what it needs when it runs, so ``walkstream
-serve`` works on a machine without moderngl and ``--help`` is instant.
+The root ``walkstream`` app (``walkstream/cli.py``) registers them beside the server's and the
+client's commands. Each imports what it needs when it runs, so ``--help`` is instant.
 """
 
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Optional
 
 import typer
 
-app = typer.Typer(
-    add_completion=False,
-    no_args_is_help=True,
-    help="walkstream: streamed walkthroughs that hold the frame rate you ask for.",
-)
-
-DEFAULT_CACHE = Path.home() / ".cache" / "walkstream"
-
-
-def _demo_store(objects: int, seed: int) -> Path:
-    from server.scene.store import SCHEMA_VERSION
-
-    return DEFAULT_CACHE / f"demo-n{objects}-s{seed}-v{SCHEMA_VERSION}.db"
-
-
-def _progress_bar(label: str, quiet: bool = False):
-    """A rich progress bar on stderr whose ``tick(stage, done, total)`` follows a build's stages."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    bar = Progress(
-        TextColumn(f"[bold]{label}[/bold] {{task.description:<12}}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        transient=False,
-        disable=quiet,
-        console=_stderr_console(),
-    )
-    tasks: dict[str, int] = {}
-
-    def tick(stage: str, done: int, total: int) -> None:
-        if stage not in tasks:
-            tasks[stage] = bar.add_task(stage, total=max(total, 1))
-        bar.update(tasks[stage], completed=done, total=max(total, 1))
-
-    return bar, tick
-
-
-def _build_demo_with_progress(path: Path, objects: int, seed: int, quiet: bool = False) -> dict:
-    from server.scene.catalog import build_named
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    bar, tick = _progress_bar("building demo", quiet)
-    with bar:
-        return build_named("demo", path, seed=seed, size=objects, progress=tick)
-
-
-def _stderr_console():
-    from rich.console import Console
-
-    return Console(stderr=True)
-
-
-@app.command()
-def build(
-    source: str = typer.Argument(..., help="a named scene (demo, auditorium, denhaag, sthelens, megacity) or a "
-                                 "path to a CityJSON, glTF/GLB, OBJ, PLY, USGS DEM, .npz or CityGML file"),
-    output: Optional[Path] = typer.Option(None, "-o", "--output",
-                                          help="the scene store to write (default: SOURCE.db in the current folder)"),
-    size: Optional[int] = typer.Option(None, help="scale of a named scene: objects (demo), buildings (megacity), "
-                                       "trees (denhaag, sthelens)"),
-    objects: Optional[int] = typer.Option(None, help="demo: number of objects (same as --size)"),
-    grid: Optional[int] = typer.Option(None, help="sthelens: resample the DEM to GRID × GRID samples "
-                                       "(ZMK 2002 use 2049; interpolated, not measured)"),
-    seed: int = typer.Option(0, help="random seed of a named scene (same seed, same scene)"),
-    workers: Optional[int] = typer.Option(None, help="worker processes (default: one per CPU)"),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
-) -> None:
-    """Build a scene store. The store appears only when the build completes."""
-    from server.scene.catalog import build_named, build_path, is_named
-    from server.scene.source import SourceError
-    from server.scene.store import StoreError
-
-    size = size if size is not None else objects
-    if size is not None and size < 1:
-        raise typer.BadParameter("must be at least 1", param_hint="--size")
-    if workers is not None and workers < 1:
-        raise typer.BadParameter("must be at least 1", param_hint="--workers")
-    named = is_named(source)
-    if grid is not None and (source != "sthelens" or not 2 <= grid <= 8193):
-        raise typer.BadParameter("resamples the sthelens DEM only, to 2..8193 samples a side", param_hint="--grid")
-    if not named and not Path(source).exists():
-        raise typer.BadParameter(
-            f"{source!r} is neither a named scene (demo, auditorium, denhaag, sthelens, megacity) nor an existing file",
-            param_hint="SOURCE")
-    if output is None:
-        output = Path(f"{source if named else Path(source).name.split('.')[0]}.db")
-    output.parent.mkdir(parents=True, exist_ok=True)
-    bar, tick = _progress_bar(f"building {source if named else Path(source).name}", quiet)
-    try:
-        with bar:
-            if named:
-                summary = build_named(source, output, seed=seed, size=size, grid=grid, workers=workers,
-                                      progress=tick)
-            else:
-                summary = build_path(source, output, workers=workers, progress=tick)
-    except (SourceError, StoreError, FileNotFoundError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
-    typer.echo(json.dumps({"store": str(output), **summary}, default=str))
-
-
-@app.command()
-def inspect(
-    store: Path = typer.Argument(..., help="a scene store"),
-    as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
-) -> None:
-    """Print what a scene store holds: objects, representations and triangles per kind and level, bytes, depth."""
-    from server.scene.inspect import format_report, inspect_store
-    from server.scene.store import StoreError
-
-    try:
-        report = inspect_store(store)
-    except StoreError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
-    if as_json:
-        typer.echo(json.dumps(report))
-    else:
-        for line in format_report(report):
-            typer.echo(line)
-
+from bench.methods import METHODS
+from server.cli import SOLVER_HELP, check_solver, progress_bar, stderr_console
 
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: each prints its figures; --json for machines.")
-app.add_typer(bench_app, name="bench")
 
 
 @bench_app.command("build")
@@ -153,7 +30,7 @@ def bench_build(
     """Build scenes and report triangles built per second, store size and index load time."""
     from bench.build import run_build_bench
 
-    bar, tick = _progress_bar("bench build", quiet=as_json)
+    bar, tick = progress_bar("bench build", quiet=as_json)
     with bar:
         result = run_build_bench(scenes, size=size, workers=workers, keep=keep, progress=tick)
     for line in result["lines"]:  # to stderr under --json, so stdout stays one JSON line
@@ -183,7 +60,7 @@ def bench_select(
         raise typer.BadParameter("sizes must be positive integers", param_hint="--sizes")
     if levels < 1 or repeats < 1:
         raise typer.BadParameter("must be at least 1", param_hint="--levels/--repeats")
-    bar, tick = _progress_bar("bench select", quiet=as_json)
+    bar, tick = progress_bar("bench select", quiet=as_json)
     with bar:
         result = run(parsed, levels=levels, repeats=repeats, seed=seed, progress=tick, exact_max=exact_max,
                      reference_max=reference_max)
@@ -208,7 +85,8 @@ def bench_predict(
 ) -> None:
     """Prediction error against horizon on the scenes' tours (against holding the last pose), and
     nearest-vertex against collapse-map geomorph correspondences rendered by the real client."""
-    from bench.correspondence import cached_store, measure
+    from bench.correspondence import measure
+    from bench.stores import build_demo, cached_denhaag, demo_store
     from bench.predict import run, tours_from_stores
 
     if rate <= 0 or jitter < 0 or pairs < 0:
@@ -219,13 +97,13 @@ def bench_predict(
     if city is not None and not city.exists():
         raise typer.BadParameter(f"no such store: {city}", param_hint="--city")
     if city is None and (pairs or not stores):
-        city = cached_store(size=size, seed=0, quiet=as_json)
+        city = cached_denhaag(size=size, seed=0, quiet=as_json)
     if not stores:
-        demo = _demo_store(576, 0)
+        demo = demo_store(576, 0)
         if not demo.exists():
-            _build_demo_with_progress(demo, 576, 0, quiet=as_json)
+            build_demo(demo, 576, 0, quiet=as_json)
         stores = [demo, city]
-    bar, tick = _progress_bar("bench predict", quiet=as_json)
+    bar, tick = progress_bar("bench predict", quiet=as_json)
     with bar:
         prediction = run(tours_from_stores(stores), rate=rate, jitter=jitter, seed=seed, progress=tick)
         morph = measure(city, pairs=pairs, seed=seed, progress=tick) if pairs else None
@@ -242,20 +120,6 @@ def bench_predict(
         print(json.dumps(out))
 
 
-def _cached_auditorium(quiet: bool) -> Path:
-    """The auditorium store the benchmarks share, under ``DEFAULT_CACHE``; built (progress bar) if missing."""
-    from bench.evaluate import scene_version
-    from server.scene.catalog import build_named
-    from server.scene.store import SCHEMA_VERSION
-
-    store = DEFAULT_CACHE / f"auditorium-s0-v{SCHEMA_VERSION}{scene_version('auditorium')}.db"
-    if not store.exists():
-        store.parent.mkdir(parents=True, exist_ok=True)
-        bar, tick = _progress_bar("building auditorium", quiet)
-        with bar:
-            build_named("auditorium", store, seed=0, progress=tick)
-    return store
-
 
 @bench_app.command("render")
 def bench_render(
@@ -269,14 +133,15 @@ def bench_render(
     """Frame time against triangles, client CPU per frame against drawn representations, and the online
     cost model's held-out error over the auditorium tour (each against a reference measured in the same run)."""
     from bench.render import run as run_render
+    from bench.stores import cached_auditorium
 
     if duration <= 2.5:
         raise typer.BadParameter("the tour needs more than the 2 s warm-up", param_hint="--duration")
     if store is not None and not store.exists():
         raise typer.BadParameter(f"no such store: {store}", param_hint="--store")
     if store is None and not no_tour:
-        store = _cached_auditorium(as_json)
-    bar, tick = _progress_bar("bench render", quiet=as_json)
+        store = cached_auditorium(as_json)
+    bar, tick = progress_bar("bench render", quiet=as_json)
     with bar:
         result = run_render(None if no_tour else store, duration=duration, quick=quick, progress=tick)
     for line in result["lines"]:
@@ -297,13 +162,13 @@ def bench_encoding(
     from bench.encoding import run as run_encoding
 
     if not stores:
-        from bench.correspondence import cached_store
+        from bench.stores import cached_auditorium, cached_denhaag
 
-        stores = [cached_store(quiet=as_json), _cached_auditorium(as_json)]
+        stores = [cached_denhaag(quiet=as_json), cached_auditorium(as_json)]
     for p in stores:
         if not p.exists():
             raise typer.BadParameter(f"no such store: {p}", param_hint="--store")
-    bar, tick = _progress_bar("bench encoding", quiet=as_json)
+    bar, tick = progress_bar("bench encoding", quiet=as_json)
     with bar:
         result = run_encoding(list(stores), progress=tick, keys=keys)
     for line in result["lines"]:
@@ -312,124 +177,6 @@ def bench_encoding(
         print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
 
 
-@app.command()
-def serve(
-    stores: list[Path] = typer.Argument(..., help="scene stores to serve, each under its recorded name"),
-    host: str = typer.Option("127.0.0.1", help="address to listen on"),
-    port: int = typer.Option(8765, help="port (0: any free port, printed once listening)"),
-    tau: float = typer.Option(0.5, help="seconds between selections (τ)"),
-    c_vertex: float = typer.Option(2.0e-7, help="first guess of the cost per vertex (s) before frames are measured"),
-    log_level: str = typer.Option("warning", help="uvicorn log level"),
-    redis: Optional[str] = typer.Option(None, "--redis", envvar="WALKSTREAM_REDIS",
-                                        help="keep session state in this Redis (redis://host:port/0), shared by "
-                                             "replicas so a client resumes on any; default: in memory"),
-    admin_token: Optional[str] = typer.Option(None, "--admin-token", envvar="WALKSTREAM_ADMIN_TOKEN",
-                                              help="bearer token for GET /sessions and DELETE /sessions/ID "
-                                                   "(without one they answer 403)"),
-    max_sessions: int = typer.Option(256, help="websocket sessions at once; past it new ones are refused (busy)"),
-    rate: float = typer.Option(200.0, help="messages per second a session may send (token bucket rate)"),
-    burst: float = typer.Option(400.0, help="messages a session may send at once (token bucket size)"),
-    idle_timeout: float = typer.Option(60.0, help="seconds without a client message before the session is closed"),
-    workers: Optional[int] = typer.Option(None, help="selection worker threads (default: the number of CPUs)"),
-    state_ttl: float = typer.Option(300.0, help="seconds a disconnected session's state is kept for a resume"),
-    replica: Optional[str] = typer.Option(None, help="this replica's name in /health (default: hostname:port)"),
-    send_buffer: Optional[int] = typer.Option(None, help="kernel send buffer per connection in bytes (default: "
-                                              "autotuned); smaller bounds what a slow client pins"),
-) -> None:
-    """Serve scene stores over websockets at /ws (plus /health, /scenes, /metrics, and /sessions for admins)."""
-    from server.app import ServeError
-    from server.app import serve as run_server
-    from server.limits import Limits
-    from server.scene.store import StoreError
-    from server.session import SessionConfig
-
-    missing = [str(p) for p in stores if not p.exists()]
-    if missing:
-        raise typer.BadParameter(f"no such store: {', '.join(missing)}", param_hint="STORES")
-    if not 0.05 <= tau <= 10:
-        raise typer.BadParameter("τ must lie in [0.05, 10] seconds", param_hint="--tau")
-    if not 1e-12 <= c_vertex <= 1e-3:
-        raise typer.BadParameter("must lie in [1e-12, 1e-3] seconds", param_hint="--c-vertex")
-    given = dict(max_sessions=max_sessions, rate=rate, burst=burst, idle_timeout=idle_timeout, state_ttl=state_ttl)
-    if workers is not None:
-        given["workers"] = workers
-    if send_buffer is not None:
-        given["send_buffer"] = send_buffer
-    try:
-        limits = Limits(**given)
-    except ValueError as exc:
-        name = str(exc).split()[0]
-        raise typer.BadParameter(str(exc), param_hint="--" + name.replace("_", "-")) from None
-    try:
-        run_server(stores, host, port, SessionConfig(tau=tau, c_vertex=c_vertex), log_level,
-                   announce=lambda s: print(s, flush=True), limits=limits, state_url=redis or None,
-                   admin_token=admin_token or None, replica=replica)
-    except (StoreError, ServeError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
-
-
-SOLVER_HELP = ("LOD selection solver the session asks for: none, static, feedback, greedy, optimization "
-               "(alias incremental), hierarchical, mixed, exact")
-
-
-def _check_solver(name: str) -> None:
-    """Refuse an unknown solver before connecting (the server would refuse it in its welcome)."""
-    from server.select.solvers import SOLVERS
-
-    if name not in SOLVERS:
-        raise typer.BadParameter(f"unknown solver {name!r}; choose one of {', '.join(sorted(SOLVERS))}",
-                                 param_hint="--solver")
-
-
-@app.command()
-def client(
-    url: str = typer.Argument("ws://127.0.0.1:8765/ws", help="the server's websocket URL"),
-    scene: str = typer.Option("demo", help="scene name"),
-    duration: Optional[float] = typer.Option(None, help="seconds to run (default: 10; with --window, until "
-                                             "the window is closed)"),
-    target_ms: float = typer.Option(50.0, help="target frame time in milliseconds"),
-    width: int = typer.Option(640),
-    height: int = typer.Option(360),
-    screenshot: Optional[Path] = typer.Option(None, help="write the last frame to this PNG"),
-    solver: str = typer.Option("greedy", help=SOLVER_HELP),
-    predict: bool = typer.Option(True, help="ask the server to select for the predicted camera path"),
-    morph: bool = typer.Option(True, help="ask for geomorph schedules (off: levels switch at once)"),
-    window: bool = typer.Option(False, "--window", help="show the frames in a window (needs a display; "
-                                "xvfb-run for a virtual one). Keys: WASD move, Q/E down/up, drag looks, "
-                                "Shift faster, Tab fly/walk, F false colour, P screenshot, Esc quits"),
-    navigate: Literal["tour", "fly", "walk"] = typer.Option(
-        "tour", help="who moves the camera: the scene's tour, or you flying or walking (needs --window)"),
-    false_colour: bool = typer.Option(False, "--false-colour", help="draw each object in a false colour"),
-    reconnect_timeout: float = typer.Option(10.0, min=0.0, help="seconds to keep redialling a lost connection "
-                                            "(resuming the session, nothing re-sent); 0: a loss ends the run"),
-) -> None:
-    """Run the client over the scene's tour (headless, or in a window you can navigate) and print its frame times."""
-    from client.app import run_client
-    from client.connection import ClientError
-    from client.window import WindowError
-
-    _check_solver(solver)
-    if navigate != "tour" and not window:
-        raise typer.BadParameter("fly and walk are driven by keys and mouse: add --window", param_hint="--navigate")
-    if duration is None:
-        duration = float("inf") if window else 10.0
-    try:
-        run = run_client(
-            url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3,
-            screenshot=screenshot, solver=solver, predict=predict, morph=morph, window=window, navigate=navigate,
-            false_colour=false_colour, reconnect_timeout=reconnect_timeout,
-        )
-    except (WindowError, ClientError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
-    from bench.demo import summarize
-
-    typer.echo(json.dumps({**summarize(run, target_ms / 1e3).as_dict(), "reconnects": len(run.reconnects),
-                           "resent": run.resent, "close_reason": run.close_reason}))
-
-
-@app.command()
 def demo(
     duration: float = typer.Option(10.0, help="seconds of tour to run"),
     target_ms: float = typer.Option(50.0, help="target frame time in milliseconds"),
@@ -446,18 +193,19 @@ def demo(
     from rich.console import Console
 
     from bench.demo import run_demo
+    from bench.stores import build_demo, demo_store
     from server.scene.store import SceneStore
 
     console = Console(stderr=as_json, soft_wrap=True)
     target = target_ms / 1e3
     if not 5 <= target_ms <= 1000:
         raise typer.BadParameter("must lie in [5, 1000]", param_hint="--target-ms")
-    _check_solver(solver)
-    path = store or _demo_store(objects, seed)
+    check_solver(solver)
+    path = store or demo_store(objects, seed)
     if not path.exists():
         if store is not None:
             raise typer.BadParameter(f"no such store: {path}", param_hint="--store")
-        _build_demo_with_progress(path, objects, seed, quiet=False)
+        build_demo(path, objects, seed, quiet=False)
     with SceneStore.open(path) as s:
         scene = s.index.name
 
@@ -498,7 +246,6 @@ def demo(
         print(json.dumps({**summary.as_dict(), "chart": str(chart), "scene": scene, "solver": run.welcome.solver}))
 
 
-@app.command()
 def loadtest(
     url: Optional[str] = typer.Option(None, help="a running server's websocket URL (ws://host:port/ws); "
                                       "default: start one on --store"),
@@ -522,7 +269,8 @@ def loadtest(
 ) -> None:
     """Simulated clients (no GL) against a server: sessions, selections per second, p50/p99 selection latency,
     bytes per second, server CPU per session and sessions per core, errors; a live table on stderr."""
-    from bench.loadtest import LoadtestError, format_summary, run_loadtest
+    from bench.loadtest.run import LoadtestError, run_loadtest
+    from bench.loadtest.summary import format_summary
 
     algs = [a.strip() for a in algorithms.split(",") if a.strip()]
     if stores and url:
@@ -530,7 +278,7 @@ def loadtest(
     for path in stores or []:
         if not path.exists():
             raise typer.BadParameter(f"no such store: {path}", param_hint="--store")
-    console = _stderr_console()
+    console = stderr_console()
     try:
         summary = run_loadtest(
             url=url, stores=stores or None, scene=scene, clients=clients, duration=duration, tau=tau, rate=rate,
@@ -549,10 +297,9 @@ def loadtest(
         print(json.dumps(summary.as_dict()))
 
 
-EVAL_METHODS = "none,static,feedback,optimization,hierarchical,predictive,mixed"
+EVAL_METHODS = ",".join(METHODS)
 
 
-@app.command("eval")
 def eval_(
     scene: str = typer.Argument(..., metavar="SCENE", help="a named scene (auditorium, denhaag, sthelens, demo, "
                                 "megacity), a scene store (.db), or a CityJSON/glTF/OBJ/PLY/DEM/CityGML file "
@@ -584,7 +331,10 @@ def eval_(
     from rich.console import Console
 
     from bench import evaluate as ev
-    from bench import report
+    from bench.report.checks import checks
+    from bench.report.folder import summary_lines, write_report
+    from bench.report.table import table1
+    from bench.stores import DEFAULT_CACHE, resolve_scene
 
     console = Console(stderr=as_json, soft_wrap=True)
     if not 5 <= target_ms <= 1000:
@@ -596,11 +346,11 @@ def eval_(
     if budget_list is not None and (not budget_list or any(not 1 <= b <= 2000 for b in budget_list)):
         raise typer.BadParameter("each budget must lie in [1, 2000] ms", param_hint="--budgets")
     names = [m.strip() for m in methods.split(",") if m.strip()]
-    unknown = [m for m in names if m not in ev.METHODS]
+    unknown = [m for m in names if m not in METHODS]
     if unknown or not names:
         raise typer.BadParameter(f"unknown method(s) {', '.join(unknown) or '(none given)'}; known: "
-                                 f"{', '.join(ev.METHODS)}", param_hint="--methods")
-    if scenario_method not in ev.METHODS:
+                                 f"{', '.join(METHODS)}", param_hint="--methods")
+    if scenario_method not in METHODS:
         raise typer.BadParameter(f"unknown method {scenario_method!r}", param_hint="--scenario-method")
     if duration is not None and duration <= 3.0:
         raise typer.BadParameter("a run needs more than the 2 s warm-up", param_hint="--duration")
@@ -609,16 +359,16 @@ def eval_(
     if samples < 0:
         raise typer.BadParameter("must be ≥ 0", param_hint="--samples")
     if scenario:
-        from bench.scenarios import SCENARIOS
+        from bench.scenarios.run import SCENARIOS
 
         bad = [n for n in scenario if n not in SCENARIOS]
         if bad:
             raise typer.BadParameter(f"unknown scenario(s) {', '.join(bad)}; known: {', '.join(SCENARIOS)}",
                                      param_hint="--scenario")
-    bar, tick = _progress_bar("eval", quiet=False)
+    bar, tick = progress_bar("eval", quiet=False)
     with bar:
         try:
-            store, name = ev.resolve_scene(scene, seed=seed, cache_dir=DEFAULT_CACHE, progress=tick)
+            store, name = resolve_scene(scene, seed=seed, cache_dir=DEFAULT_CACHE, progress=tick)
         except (ValueError, FileNotFoundError) as exc:
             raise typer.BadParameter(str(exc), param_hint="SCENE")
         folder = out or Path("walkstream-out") / f"eval-{name}"
@@ -627,13 +377,13 @@ def eval_(
                               duration=duration, viewport=(width, height), tau=tau, seed=seed, quality=quality,
                               every=every, samples=samples or None, out=folder, progress=tick)
         if scenarios:
-            from bench.scenarios import run_scenarios
+            from bench.scenarios.run import run_scenarios
 
             results["scenarios"] = run_scenarios(store, name, target_ms=target_ms, method=scenario_method,
                                                  names=scenario or None, viewport=(width, height), tau=tau,
                                                  seed=seed, progress=tick)
-    index = report.write_report(results, folder)
-    for line in report.summary_lines(results):
+    index = write_report(results, folder)
+    for line in summary_lines(results):
         console.print(line, markup=False, highlight=False)
     for s in results.get("scenarios") or []:
         console.print(s["line"], markup=False, highlight=False)
@@ -641,17 +391,9 @@ def eval_(
     if as_json:
         print(json.dumps({
             "scene": name, "store": str(store), "report": str(index), "target_ms": target_ms,
-            "budgets_ms": results.get("budgets_ms"), "table1": report.table1(results),
-            "checks": report.checks(results),
+            "budgets_ms": results.get("budgets_ms"), "table1": table1(results),
+            "checks": checks(results),
             "runs": [{"method": r["method"], "target_ms": r["target_ms"], **r["summary"]} for r in results["runs"]],
             "scenarios": [{k: v for k, v in s.items()} for s in results.get("scenarios") or []],
             "skipped": results.get("skipped", {}),
         }))
-
-
-def main() -> None:
-    app()
-
-
-if __name__ == "__main__":
-    sys.exit(main())

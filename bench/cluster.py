@@ -2,7 +2,7 @@
 
 Redis for session state, N ``walkstream serve`` replicas sharing it, and nginx in
 front (websocket upgrade, ``hash $arg_client consistent`` so a client stays on
-one replica). This machine has no Docker engine, so the fault tests and
+one replica). CI has no Docker engine, so the fault tests and
 benchmarks start the same parts from Debian's ``redis-server`` and ``nginx``,
 with nginx running ``deploy/nginx.conf`` — the file compose mounts — rewritten
 only where loopback differs from compose (addresses, ports, paths, user).

@@ -38,7 +38,7 @@ import numpy as np
 
 __all__ = [
     "ARTEFACT_LEVEL", "VIEW_DIRECTION", "View", "sample_pairs", "load_pair", "frame_box", "render_images",
-    "compare", "measure", "cached_store",
+    "compare", "measure",
 ]
 
 #: A pixel whose channels differ by more than this (of 255) counts as an artefact pixel.
@@ -323,19 +323,3 @@ def _lines(s: dict) -> list[str]:
         lines.append(f"winner: {s['winner']} maps, {s['margin']:.2f}× lower mean |Δ| than "
                      f"{'nearest' if s['winner'] == 'collapse' else 'collapse'}")
     return lines
-
-
-def cached_store(size: int | None = None, seed: int = 0, quiet: bool = False) -> Path:
-    """The Den Haag store the benchmark uses, under ``~/.cache/walkstream``; built (progress bar on stderr) if missing."""
-    from bench.cli import DEFAULT_CACHE, _progress_bar
-    from server.scene.catalog import build_named
-    from server.scene.store import SCHEMA_VERSION
-
-    tag = "" if size is None else f"-n{size}"
-    path = DEFAULT_CACHE / f"denhaag{tag}-s{seed}-v{SCHEMA_VERSION}.db"
-    if not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        bar, tick = _progress_bar("building denhaag", quiet)
-        with bar:
-            build_named("denhaag", path, seed=seed, size=size, progress=tick)
-    return path

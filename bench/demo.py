@@ -46,7 +46,7 @@ class ServerProcess:
         port: int = 0,
         env: dict | None = None,
     ):
-        cmd = [sys.executable, "-m", "bench.cli", "serve", *map(str, stores), "--host", host, "--port", str(port)]
+        cmd = [sys.executable, "-m", "walkstream", "serve", *map(str, stores), "--host", host, "--port", str(port)]
         if redis:
             cmd += ["--redis", redis]
         if replica:

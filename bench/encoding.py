@@ -25,7 +25,7 @@ from server.scene.store import SceneStore
 
 __all__ = ["measure", "run"]
 
-GOAL = 0.40  # issue 7: at most 40 % of the raw float32 bytes
+GOAL = 0.40  # the goal: at most 40 % of the raw float32 bytes
 
 
 def _raw_mesh(blob: bytes) -> bytes:

@@ -1,4 +1,4 @@
-"""``walkstream eval``: every LOD method over a scene's tour, side by side (issue 8, F&S 1993 Table 1).
+"""``walkstream eval``: every LOD method over a scene's tour, side by side (F&S 1993 Table 1).
 
 One real server (``walkstream serve`` in a child process) serves the scene; the
 real headless client drives one fresh session per run over the scene's tour, in
@@ -11,36 +11,15 @@ same camera for image error and popping (``bench.quality``), and the
 false-colour level images at viewpoints A and C are drawn. The result is the
 dict the README's "Evaluation" section describes (``bench.report`` writes it out).
 
-The methods (``METHODS``) and what a session does with them
-(``server/session.py``, ``server/select/selection.py``):
-
-- ``none``, ``static``, ``feedback`` — F&S's baselines (``solvers/baselines.py``);
-  ``none`` and ``static`` ignore the budget, so they run once, at the target.
-- ``optimization`` — F&S's predictive incremental optimisation
-  (``solvers/incremental.py``), over the flat view (mesh leaves).
-- ``hierarchical`` — Mason & Blake / Zach's solver over the hierarchical view
-  (HLOD and terrain trees; on a scene without hierarchies every object is a root).
-- ``predictive`` — Zach 2002: the hierarchical solver, selecting for the
-  *predicted* camera path with the conservative camera, and geomorphing
-  between levels.
-- ``mixed`` — Zach, Mantler & Karner 2002: meshes and terrain (the flat view, F&S accuracy) plus the
-  continuous resolution of tree groups, predicted and morphed; only where the
-  scene has tree groups.
-
-``predict=False`` means the session selects for the client's latest reported
-pose alone (``Session._interval``: one view, widened by ``margin_deg``) — what
-F&S's frame-by-frame methods see; ``morph=False`` means a new selection takes
-over at its switch time at once (no morph window τ before it, no morph maps
-sent). F&S's four methods run that way, as in the paper; Zach's run with both.
+The methods and what a session does with them are ``bench.methods.METHODS``.
 
 Frames are paced at 60 fps (``MAX_FPS``): a frame's measured time is its fenced draw
 either way, and an unpaced client on cheap frames outruns the server's per-session
-message rate limit (see ``MAX_FPS`` for what was measured).
+message rate limit (see ``MAX_FPS``).
 """
 
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 import pickle
@@ -51,15 +30,17 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from bench.jsonable import jsonable
+from bench.methods import METHODS, Method
+
 __all__ = [
-    "Method", "METHODS", "RunSpec", "MAX_FPS", "MAX_DURATION_S", "WARMUP_S", "scene_has_continuous", "plan",
-    "skipped_methods", "tour_of", "run_one", "summarize_frames", "evaluate", "resolve_scene", "print_table",
-    "table_rows",
+    "RunSpec", "MAX_FPS", "MAX_DURATION_S", "WARMUP_S", "scene_has_continuous", "plan", "skipped_methods",
+    "tour_of", "run_one", "summarize_frames", "evaluate", "print_table", "table_rows",
 ]
 
 Progress = Callable[[str, int, int], None]
 
-#: A frame over this multiple of the target broke it (F&S's and the issue's 1.10).
+#: A frame over this multiple of the target broke it (F&S's 1.10).
 OVER_RATIO = 1.10
 #: Frames in the first seconds are the loop converging (cost model, first deltas); summaries start after.
 WARMUP_S = 2.0
@@ -67,55 +48,15 @@ WARMUP_S = 2.0
 MAX_DURATION_S = 90.0
 #: Frames are paced at 60 fps, as a display would. Pacing never changes a measured frame time (the fenced
 #: draw, ``FrameStats.time``), only idles the client after frames faster than 17 ms, which the budgets here
-#: (≥ 25 ms) rarely allow. Unpaced was the first choice (F&S measure a method's own frame time) and was
-#: measured against paced — auditorium, optimization at 50 ms, 4 alternating pairs of 30 s runs on one
-#: server, load average 6–8 from other jobs: server CPU 1.5–1.8 s per run either way (≈ 6 % of a core),
-#: selection time median 2.0–2.7 ms unpaced against 2.1–2.8 ms paced, frame mean 28–30 against 27–37 ms:
-#: no starvation. But an unpaced client sends a pose and a report per frame, and on cheap frames (a sparse
-#: view, a small viewport) passes the server's 200 messages/s per session: the server drops them
-#: (``rate_limited`` errors, seen on the small demo at 160×90) and closes a session that keeps it up — the
-#: run would measure the rate limiter. 60 fps is 120 messages/s.
+#: (≥ 25 ms) rarely allow; paced and unpaced runs cost the server the same CPU and selection time. But an
+#: unpaced client sends a pose and a report per frame, and on cheap frames (a sparse view, a small viewport)
+#: passes the server's 200 messages/s per session: the server drops them (``rate_limited`` errors) and
+#: closes a session that keeps it up — the run would measure the rate limiter. 60 fps is 120 messages/s.
 MAX_FPS: float | None = 60.0
-
-_DEFAULT_CACHE = Path.home() / ".cache" / "walkstream"
-_SOURCE_SUFFIXES = (".city.json", ".json", ".gltf", ".glb", ".obj", ".ply", ".dem", ".npz", ".gml")
 
 
 def _noop(stage: str, done: int, total: int) -> None:
     pass
-
-
-@dataclass(frozen=True)
-class Method:
-    """One method of the evaluation: the solver a session asks for, and how it asks.
-
-    budget_dependent : False for methods that ignore the target (run once, at the target)
-    continuous_only : run only on scenes with continuous objects (tree groups)
-    """
-
-    name: str
-    solver: str
-    predict: bool
-    morph: bool
-    budget_dependent: bool
-    continuous_only: bool
-    title: str
-
-
-METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("none", "none", False, False, False, False, "None: every object at full detail (F&S)"),
-    Method("static", "static", False, False, False, False, "Static: ≥ 1024 pixels per polygon (F&S)"),
-    Method("feedback", "feedback", False, False, True, False,
-           "Feedback: Static's threshold scaled by the last frame (F&S)"),
-    Method("optimization", "optimization", False, False, True, False,
-           "Optimization: incremental benefit/cost under the budget (F&S)"),
-    Method("hierarchical", "hierarchical", False, False, True, False,
-           "Hierarchical: increments over the HLOD forest (Mason & Blake, Zach)"),
-    Method("predictive", "hierarchical", True, True, True, False,
-           "Predictive: hierarchical + predicted path + geomorphing (Zach 2002)"),
-    Method("mixed", "mixed", True, True, True, True,
-           "Mixed: meshes and continuous tree groups, predicted and morphed (ZMK 2002)"),
-)}
 
 
 @dataclass(frozen=True)
@@ -211,7 +152,7 @@ def derive_viewpoints(store: str | Path, duration: float, warmup: float, *, view
     """
     if not missing:
         return {}
-    from bench.scenarios import _visible_counts
+    from bench.scenarios.paths import visible_counts
     from client.navigation import Tour
     from server.scene.store import SceneStore
 
@@ -221,7 +162,7 @@ def derive_viewpoints(store: str | Path, duration: float, warmup: float, *, view
             return {}
         tour = Tour(list(index.tour))
         ts = np.arange(warmup + 0.5, max(duration - 0.5, warmup + 0.5) + 1e-9, 0.5)
-        counts = _visible_counts(index, tour.pose_at(ts), fov_y, tuple(viewport))
+        counts = visible_counts(index, tour.pose_at(ts), fov_y, tuple(viewport))
     out: dict[str, tuple[float, str]] = {}
     if "A" in missing and counts.size:
         i = int(np.argmax(counts))
@@ -345,21 +286,6 @@ def run_one(
 # ---------------------------------------------------------------- the evaluation
 
 
-def _plain(x):
-    """numpy scalars and arrays → Python numbers and lists, recursively; NaN and ±∞ → None (strict JSON)."""
-    if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _plain(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
 def _nearest(traces: list, at_t: float):
     if not traces:
         return None
@@ -461,7 +387,7 @@ def evaluate(
         if quality:
             _measure_quality(results, spilled, near, store, viewport, fov_y, every, warmup, seed,
                              None if out is None else Path(out), tick, samples=samples, workers=workers)
-    return _plain(results)
+    return jsonable(results)
 
 
 def _measure_quality(results: dict, spilled: list[Path], near: dict, store: Path, viewport, fov_y: float,
@@ -489,8 +415,8 @@ def _measure_quality(results: dict, spilled: list[Path], near: dict, store: Path
             measured[futures[fut]] = fut.result()
             tick("quality", done, len(runs))
     for run, m in zip(runs, measured):
-        run["quality"] = _plain({k: list(m.get(k, [])) for k in ("t", "frame", "flip", "psnr", "ssim", "popping")})
-        run["summary"].update(_plain(q.summary(m)))
+        run["quality"] = jsonable({k: list(m.get(k, [])) for k in ("t", "frame", "flip", "psnr", "ssim", "popping")})
+        run["summary"].update(jsonable(q.summary(m)))
     if out is not None and near:
         images = out / "images"
         images.mkdir(parents=True, exist_ok=True)
@@ -515,84 +441,6 @@ def _quality_job(store: str, viewport: tuple, fov_y: float, spilled: str, every:
     with Replayer(store, viewport=viewport, fov_y=fov_y) as replayer:
         return q.measure(replayer, traces, every=every, warmup=warmup, samples=samples, seed=seed)
 
-
-# ---------------------------------------------------------------- scenes
-
-
-def scene_version(name: str) -> str:
-    """A named scene's generator version as a cache-key suffix ("-g2"), or "" for a scene without one."""
-    import importlib
-
-    try:
-        module = importlib.import_module(f"server.scene.generate.{name}")
-    except ImportError:
-        return ""
-    version = getattr(module, "VERSION", None)
-    return f"-g{version}" if version is not None else ""
-
-
-def resolve_scene(arg: str | Path, *, seed: int = 0, cache_dir: str | Path | None = None,
-                  progress: Progress | None = None) -> tuple[Path, str]:
-    """(store path, scene name) for what a user typed: a store, a named scene or a source file.
-
-    A ``.db`` file is opened for its name. A named scene (demo, auditorium, denhaag, sthelens, megacity) is
-    built once into ``cache_dir/{name}-s{seed}-v{SCHEMA_VERSION}[-g{generator VERSION}].db``. A user's CityJSON, glTF/GLB, OBJ,
-    PLY, USGS DEM, .npz or CityGML file is built once (with a generated orbit tour) into
-    ``cache_dir/{stem}-{sha256[:16]}-v{SCHEMA_VERSION}.db``, keyed by its content, so an edited file builds
-    anew. ``cache_dir`` defaults to ~/.cache/walkstream. ValueError says what was wrong with anything else.
-    """
-    from server.scene.catalog import SCENES, build_named, build_path, is_named
-    from server.scene.source import SourceError
-    from server.scene.store import SCHEMA_VERSION, SceneStore, StoreError
-
-    cache = Path(cache_dir) if cache_dir is not None else _DEFAULT_CACHE
-    text = str(arg)
-    path = Path(text).expanduser()
-    names = ", ".join(["demo", *SCENES])
-
-    def name_of(p: Path) -> str:
-        try:
-            with SceneStore.open(p) as s:
-                return s.index.name
-        except StoreError as exc:
-            raise ValueError(f"{p} is not a usable scene store: {exc}") from None
-
-    if path.suffix.lower() == ".db":
-        if not path.is_file():
-            raise ValueError(f"no such scene store: {path}")
-        return path, name_of(path)
-    if is_named(text) and not path.exists():
-        target = cache / f"{text}-s{seed}-v{SCHEMA_VERSION}{scene_version(text)}.db"
-        if not target.exists():
-            target.parent.mkdir(parents=True, exist_ok=True)
-            build_named(text, target, seed=seed, progress=progress)
-        return target, name_of(target)
-    if path.is_file() and path.name.lower().endswith(_SOURCE_SUFFIXES):
-        suffix = next(x for x in _SOURCE_SUFFIXES if path.name.lower().endswith(x))
-        digest = _file_digest(path, suffix)
-        stem = path.name.split(".")[0] or "scene"
-        target = cache / f"{stem}-{digest[:16]}-v{SCHEMA_VERSION}.db"
-        if not target.exists():
-            target.parent.mkdir(parents=True, exist_ok=True)
-            try:
-                build_path(path, target, progress=progress)
-            except (SourceError, StoreError) as exc:
-                raise ValueError(f"cannot build a scene from {path}: {exc}") from None
-        return target, name_of(target)
-    if path.is_file():
-        raise ValueError(f"{path}: not a scene store (.db) nor a source walkstream can import "
-                         f"({', '.join(_SOURCE_SUFFIXES)})")
-    raise ValueError(f"{text!r} is neither a scene store (.db), a named scene ({names}) nor an existing "
-                     f"source file (CityJSON, glTF/GLB, OBJ, PLY, USGS DEM, .npz, CityGML)")
-
-
-def _file_digest(path: Path, suffix: str) -> str:
-    """sha256 of the importer's suffix and the file's bytes: the same bytes read as another kind differ."""
-    h = hashlib.sha256(suffix.encode())
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 # ---------------------------------------------------------------- printing

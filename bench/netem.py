@@ -1,9 +1,9 @@
 """A bad network on loopback: latency, jitter, loss and cuts for the fault tests.
 
-The issue asks for ``tc netem`` inside a network namespace the test creates. The
-kernel of the machine these tests were written on has network namespaces but no
-``sch_netem`` module (``tc qdisc add ... netem`` fails with "qdisc kind unknown"),
-so ``DelayProxy`` stands in for it: a TCP relay on loopback that delays every
+The fault tests want ``tc netem`` inside a network namespace the test creates. A
+kernel can have network namespaces but no ``sch_netem`` module (``tc qdisc add ...
+netem`` fails with "qdisc kind unknown"), as container and CI kernels often do, so
+``DelayProxy`` stands in for it: a TCP relay on loopback that delays every
 chunk it relays and emulates loss the way TCP shows it to an application — a lost
 segment arrives late, after a retransmission timeout, and holds back everything
 behind it. ``netem_available()`` says whether the real thing would work here;

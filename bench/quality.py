@@ -1,4 +1,4 @@
-"""Image quality of traced frames against full detail: FLIP, PSNR, SSIM and popping (issue 8).
+"""Image quality of traced frames against full detail: FLIP, PSNR, SSIM and popping.
 
 Every figure compares two images drawn by the same renderer (``bench.replay.Replayer``),
 untimed, from the same camera: the frame a method drew (reference: the full-detail

@@ -1,7 +1,7 @@
 """Drawing a traced frame again, untimed, and the full-detail frame at the same camera.
 
 Image quality is measured against full detail at the same camera, drawn by the
-same renderer (issue 8). A client run with ``trace=True`` records per frame what
+same renderer. A client run with ``trace=True`` records per frame what
 it drew (``client.records.FrameTrace``: reps, morph weights, levels, rendering
 algorithms, tree groups and their resolutions, camera); ``Replayer`` draws that
 frame again from the scene store, pixel for pixel as the client did, and draws
@@ -14,11 +14,11 @@ not fit still replays. Objects whose box lies outside the view frustum are not
 even loaded: the box bounds every level and the morph targets (the store's
 ``object_box``), so leaving them out draws the same pixels.
 
-Tree groups at full detail can be out of reach: St. Helens' 2778 groups hold 490 M
-splats, minutes a frame on llvmpipe. ``full`` keeps to a splat budget
-(``tree_splats``, default ``TREE_SPLATS``): when the groups in view exceed it, the
-ones smallest on screen get fewer splats (``Replayer.full_resolutions``); Den Haag's
-groups (6 M splats) are always drawn whole.
+Tree groups at full detail can be out of reach: a forest's groups can hold hundreds
+of millions of splats, far too many to draw a frame of in reasonable time on a
+software rasterizer. ``full`` keeps to a splat budget (``tree_splats``, default
+``TREE_SPLATS``): when the groups in view exceed it, the ones smallest on screen get
+fewer splats (``Replayer.full_resolutions``); a city's trees fit the budget whole.
 
 Per frame the work is numpy over the drawn reps (membership, stamps, culling);
 Python loops run once per representation loaded, never per frame.
@@ -27,7 +27,6 @@ Python loops run once per representation loaded, never per frame.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 
@@ -47,8 +46,8 @@ __all__ = ["TREE_SPLATS", "Replayer", "finest_cut", "tree_groups"]
 _VERTEX_BYTES, _TRIANGLE_BYTES = 32, 12
 #: Representations fetched from the store per SELECT batch while loading.
 _BATCH = 256
-#: Splats a full-detail frame draws at most by default: about 5 s a frame on llvmpipe. Den Haag's 56 groups
-#: (6 M splats) fit whole; St. Helens' 2778 (490 M) would take minutes a frame at x = 1.
+#: Splats a full-detail frame draws at most by default: a city's tree groups fit whole, a forest's are
+#: thinned (the smallest on screen first) so a full-detail frame stays drawable on a software rasterizer.
 TREE_SPLATS = 16_000_000
 
 

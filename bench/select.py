@@ -10,10 +10,10 @@ Figures per size: the greedy from scratch; a coherent step of the incremental
 "optimization" solver (the camera moved 0.5 m and 1°: sizes change by ~1.5 %,
 a few objects enter and leave, the previous frame's solution is the start);
 optimality against the exact MIP optimum (small sizes) and the LP upper bound;
-and, since the machine is shared and noisy, the speed against a plain-Python
+and, since a shared machine is noisy, the speed against a plain-Python
 reference of the same greedy measured in the same run.
 
-Goals (issue text): 100k from scratch ≤ 20 ms, coherent step at 100k ≤ 3 ms,
+Goals: 100k from scratch ≤ 20 ms, coherent step at 100k ≤ 3 ms,
 1M from scratch ≤ 250 ms, greedy ≥ 0.99 of the optimum at 1k.
 """
 

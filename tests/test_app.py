@@ -355,7 +355,7 @@ def test_serve_refuses_an_unreachable_redis(demo_store):
     """``walkstream serve --redis`` with nothing listening: a clear error and exit 2, before serving anything."""
     from typer.testing import CliRunner
 
-    from bench.cli import app
+    from walkstream.cli import app
 
     with socket.socket() as s:  # a port nothing listens on
         s.bind(("127.0.0.1", 0))

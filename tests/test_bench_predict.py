@@ -82,7 +82,7 @@ def test_cli_prints_both_parts_as_json(demo_store, denhaag_store):
     import subprocess
     import sys
 
-    done = subprocess.run([sys.executable, "-m", "bench.cli", "bench", "predict", "--store", str(demo_store),
+    done = subprocess.run([sys.executable, "-m", "walkstream", "bench", "predict", "--store", str(demo_store),
                            "--city", str(denhaag_store), "--pairs", "4", "--json"],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
@@ -97,6 +97,6 @@ def test_cli_refuses_a_missing_store(tmp_path):
     import subprocess
     import sys
 
-    done = subprocess.run([sys.executable, "-m", "bench.cli", "bench", "predict", "--store", str(tmp_path / "no.db"),
+    done = subprocess.run([sys.executable, "-m", "walkstream", "bench", "predict", "--store", str(tmp_path / "no.db"),
                            "--pairs", "0"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "no such store" in done.stderr

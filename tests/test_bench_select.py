@@ -115,7 +115,7 @@ def test_goals_are_judged_with_their_margin():
 
 
 def test_cli_prints_the_figures_as_json():
-    done = subprocess.run([sys.executable, "-m", "bench.cli", "bench", "select", "--sizes", "300", "--repeats", "1",
+    done = subprocess.run([sys.executable, "-m", "walkstream", "bench", "select", "--sizes", "300", "--repeats", "1",
                            "--json"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     figures = json.loads(done.stdout)  # stdout is the JSON alone: no solver banner before it
@@ -126,6 +126,6 @@ def test_cli_prints_the_figures_as_json():
 
 
 def test_cli_rejects_bad_sizes():
-    done = subprocess.run([sys.executable, "-m", "bench.cli", "bench", "select", "--sizes", "ten"],
+    done = subprocess.run([sys.executable, "-m", "walkstream", "bench", "select", "--sizes", "ten"],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "--sizes" in done.stderr

@@ -369,7 +369,7 @@ def test_failure_while_writing_leaves_no_store(tmp_path, monkeypatch) -> None:
 def test_cli_builds_a_path_and_inspects_it(tmp_path) -> None:
     src = _two_meshes(tmp_path, ".glb")
     out = tmp_path / "cli.db"
-    run = [sys.executable, "-m", "bench.cli"]
+    run = [sys.executable, "-m", "walkstream"]
     done = subprocess.run([*run, "build", str(src), "-o", str(out), "-q"], capture_output=True, text=True, timeout=240)
     assert done.returncode == 0, done.stderr
     done = subprocess.run([*run, "inspect", str(out), "--json"], capture_output=True, text=True, timeout=240)

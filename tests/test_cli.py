@@ -13,7 +13,7 @@ from server.scene.store import SceneStore
 
 
 def _walkstream(*args: str, cwd: Path | None = None, timeout: float = 240) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "bench.cli", *args], capture_output=True, text=True, timeout=timeout,
+    return subprocess.run([sys.executable, "-m", "walkstream", *args], capture_output=True, text=True, timeout=timeout,
                           cwd=cwd)
 
 

@@ -60,7 +60,7 @@ def test_a_compressed_frame_that_lies_or_is_garbage_is_refused():
 
 
 def test_bench_encoding_json(denhaag_store):
-    out = subprocess.run([sys.executable, "-m", "bench.cli", "bench", "encoding", "--store", str(denhaag_store),
+    out = subprocess.run([sys.executable, "-m", "walkstream", "bench", "encoding", "--store", str(denhaag_store),
                           "--keys", "6", "--json"], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     doc = json.loads(out.stdout.strip().splitlines()[-1])

@@ -9,18 +9,18 @@ import numpy as np
 import pytest
 
 from bench.evaluate import (
-    METHODS,
     RunSpec,
     evaluate,
     plan,
     print_table,
-    resolve_scene,
     scene_has_continuous,
     skipped_methods,
     summarize_frames,
     table_rows,
     tour_of,
 )
+from bench.methods import METHODS
+from bench.stores import resolve_scene
 from server.scene.store import SCHEMA_VERSION, SceneStore
 
 SCHEMA_TOP = {"scene", "store", "target_ms", "budgets_ms", "viewport", "fov_y", "tau_s", "seed", "duration_s",
@@ -275,7 +275,7 @@ def test_resolve_scene_says_what_is_wrong(tmp_path):
 
 def test_a_scene_without_viewpoints_gets_stand_ins_for_a_and_c(denhaag_store) -> None:
     from bench.evaluate import derive_viewpoints
-    from bench.scenarios import _visible_counts
+    from bench.scenarios.paths import visible_counts
     from client.navigation import Tour
     from server.scene.store import SceneStore
 
@@ -284,7 +284,7 @@ def test_a_scene_without_viewpoints_gets_stand_ins_for_a_and_c(denhaag_store) ->
     with SceneStore.open(denhaag_store) as s:
         tour = Tour(list(s.index.tour))
         ts = np.arange(2.5, 19.5 + 1e-9, 0.5)
-        counts = _visible_counts(s.index, tour.pose_at(ts), 60.0, (640, 360))
+        counts = visible_counts(s.index, tour.pose_at(ts), 60.0, (640, 360))
     assert counts[list(ts).index(got["A"][0])] == counts.max()  # A: the most in view
     assert derive_viewpoints(denhaag_store, 20.0, 2.0, missing=["C"]).keys() == {"C"}
     assert derive_viewpoints(denhaag_store, 20.0, 2.0, missing=[]) == {}

@@ -17,18 +17,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bench.loadtest import (
-    HeldSet,
-    LoadtestError,
-    RendererModel,
-    _Client,
-    _Config,
-    histogram_quantile,
-    parse_metrics,
-    payload_counts,
-    run_loadtest,
-    unframe,
-)
+from bench.loadtest.client import ClientConfig, HeldSet, RendererModel, SimulatedClient, payload_counts, unframe
+from bench.loadtest.metrics import histogram_quantile, parse_metrics
+from bench.loadtest.run import LoadtestError, run_loadtest
 from client.cache import ResidentCache
 from proto.codec import decode_client, encode
 from proto.geometry import encode_geometry
@@ -50,10 +41,10 @@ def _mesh(n: int) -> bytes:
 PAYLOADS = [_mesh(n) for n in (1, 3, 8, 20)]
 
 
-def _config(**kw) -> _Config:
+def _config(**kw) -> ClientConfig:
     base = dict(url="ws://127.0.0.1:1/ws", http="http://127.0.0.1:1", scene="demo", rate=10.0, target=0.05,
                 algorithms=("flat", "lit"), model=RendererModel(), seed=0)
-    return _Config(**{**base, **kw})
+    return ClientConfig(**{**base, **kw})
 
 
 # --------------------------------------------------------------------------- the simulated cache
@@ -73,7 +64,7 @@ deltas = st.lists(
 def test_acks_match_the_real_client_cache(seq):
     """What a simulated client acks (held, held_bytes, digest) after every delta equals what client.cache acks."""
     real = ResidentCache()
-    sim = _Client(0, 1, _config())
+    sim = SimulatedClient(0, 1, _config())
     for i, (adds, drops) in enumerate(seq):
         delta = Delta(seq=i + 1, t0=0.0, t1=0.5, drop=drops, selection=[r for r, _ in adds],
                       add=[RepresentationAdd(rep=r, object=r, level=0, geometry=PAYLOADS[p]) for r, p in adds])
@@ -103,7 +94,7 @@ def test_payload_counts_read_the_header_only(demo_store):
 def test_hand_built_messages_pass_the_servers_decoder():
     """Camera, frame report, ack and pong maps built without pydantic are valid protocol-4 client messages,
     and the frame report's totals and per-algorithm terms agree with the renderer model."""
-    sim = _Client(3, 8, _config())
+    sim = SimulatedClient(3, 8, _config())
     adds = [RepresentationAdd(rep=r, object=r, level=0, geometry=PAYLOADS[r % 4]) for r in range(6)]
     delta = Delta(seq=1, t0=0.0, t1=0.5, add=adds, selection=[0, 2, 4, 5], algorithm=[0, 1, 0, 1], reset=True)
     ack = sim.apply_delta(unframe(encode(delta)), t=0.2)
@@ -192,7 +183,7 @@ def test_short_real_run(demo_store):
 def test_cli_json(demo_store):
     """``walkstream loadtest --json`` prints one parseable JSON object on stdout with the summary's keys."""
     out = subprocess.run(
-        [sys.executable, "-m", "bench.cli", "loadtest", "--store", str(demo_store), "--clients", "2",
+        [sys.executable, "-m", "walkstream", "loadtest", "--store", str(demo_store), "--clients", "2",
          "--duration", "2.5", "--ramp", "0.5", "--reference", "0", "--json"],
         cwd=ROOT, capture_output=True, text=True, timeout=120,
     )

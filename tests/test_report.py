@@ -12,18 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.report import (
-    bound_frames,
-    COLUMNS,
-    checks,
-    pareto,
-    pareto_miss,
-    quality_points,
-    summary_lines,
-    table1,
-    write_report,
-    write_table1,
-)
+from bench.report.checks import bound_frames, checks, pareto, pareto_miss, quality_points
+from bench.report.folder import summary_lines, write_report
+from bench.report.table import COLUMNS, table1, write_table1
 
 METHODS = ["none", "static", "feedback", "optimization", "hierarchical", "predictive", "mixed"]
 #: Plausible per-method behaviour at budget b: (frame mean as × b or ms if budget-free, std share, FLIP at 1×)

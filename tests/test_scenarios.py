@@ -14,15 +14,21 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bench import scenarios as sc
-from bench.scenarios import (
-    Anchor, Context, METHODS, SCENARIOS, anchor_of, below_coarsest, below_coarsest_verdict, coverage, drift_verdict,
-    level_jumps, network_verdict, oscillation_path, oscillation_verdict, print_results, recovery_time, reset_times,
-    run_scenarios, spin_path, spin_verdict, straight_path, tour_segment, turn_path, turn_verdict, window_stats,
+from bench.methods import METHODS as _METHODS
+from bench.scenarios import paths as sc_paths
+from bench.scenarios import run as sc_run
+from bench.scenarios.measures import coverage, level_jumps, recovery_time, reset_times, window_stats
+from bench.scenarios.paths import Anchor, anchor_of, oscillation_path, spin_path, straight_path, tour_segment, turn_path
+from bench.scenarios.run import SCENARIOS, Context, below_coarsest, print_results, run_scenarios
+from bench.scenarios.verdicts import (
+    below_coarsest_verdict, drift_verdict, network_verdict, oscillation_verdict, spin_verdict, turn_verdict,
 )
 from client.records import FrameRecord, FrameTrace
 from client.navigation import Tour
 from server.scene.store import SceneStore
+
+#: (solver, predict, morph) of each method, as a session is asked for it.
+METHODS = {n: (m.solver, m.predict, m.morph) for n, m in _METHODS.items()}
 
 ANCHOR = Anchor(eye=np.array([1.0, 2.0, 3.0]), yaw=math.radians(-90.0), pitch=math.radians(-12.0), speed=1.2,
                 source="test")
@@ -61,7 +67,7 @@ def test_spin_path_turns_a_full_circle_within_one_second_at_the_anchor():
     assert abs(abs(yaw[-1] - yaw[0]) - 2 * math.pi) < 1e-6
     assert np.all(np.diff(yaw) > 0)  # one way round, never back
     assert np.all(fwd[:300, 2] > math.sin(math.radians(55)))  # looking up first: the sparse view
-    assert np.allclose(fwd[-1], sc._forward(ANCHOR.yaw, ANCHOR.pitch), atol=1e-9)  # ends on the dense view
+    assert np.allclose(fwd[-1], sc_paths.forward_of(ANCHOR.yaw, ANCHOR.pitch), atol=1e-9)  # ends on the dense view
     assert tour.pose_at(500.0)[1] @ fwd[-1] > 0.999999  # and holds it: the path does not loop back
 
 
@@ -88,7 +94,7 @@ def test_oscillation_path_reverses_every_half_period():
     along = (eye - ANCHOR.eye) @ ANCHOR.ahead
     assert along.min() >= -1e-9 and abs(along.max() - 2.0) < 1e-9
     assert np.allclose(np.cross(eye - ANCHOR.eye, ANCHOR.ahead), 0.0)  # straight forward and back
-    assert np.allclose(fwd, sc._forward(ANCHOR.yaw, ANCHOR.pitch))  # the view direction is held
+    assert np.allclose(fwd, sc_paths.forward_of(ANCHOR.yaw, ANCHOR.pitch))  # the view direction is held
     direction = np.sign(np.diff(along))
     direction = direction[direction != 0]
     flips = np.nonzero(np.diff(direction))[0]
@@ -245,7 +251,7 @@ def test_frame_time_verdicts_hold_their_limits():
 
 
 def test_cpu_load_is_always_cleaned_up():
-    load = sc._CpuLoad(2)
+    load = sc_run._CpuLoad(2)
     with pytest.raises(RuntimeError):
         with load:
             load.start()

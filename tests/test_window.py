@@ -114,7 +114,7 @@ def _assert_drawn(image: np.ndarray) -> None:
 def test_window_client_draws_the_scene(display, server, scenes, tmp_path, which, navigate, extra):
     shot = tmp_path / f"{which}.png"
     done = subprocess.run(
-        [sys.executable, "-m", "bench.cli", "client", server.url, "--scene", scenes[which], "--window",
+        [sys.executable, "-m", "walkstream", "client", server.url, "--scene", scenes[which], "--window",
          "--navigate", navigate, "--duration", "3", "--width", "320", "--height", "180", "--screenshot", str(shot),
          *extra],
         capture_output=True, text=True, timeout=60, env=_env(display), cwd=ROOT,
@@ -130,12 +130,12 @@ def test_window_client_draws_the_scene(display, server, scenes, tmp_path, which,
 
 def test_window_needs_a_display(monkeypatch):
     done = subprocess.run(
-        [sys.executable, "-m", "bench.cli", "client", "ws://127.0.0.1:9/ws", "--window", "--duration", "1"],
+        [sys.executable, "-m", "walkstream", "client", "ws://127.0.0.1:9/ws", "--window", "--duration", "1"],
         capture_output=True, text=True, timeout=60, env=_env(None), cwd=ROOT,
     )
     assert done.returncode == 2
     assert "xvfb-run" in done.stderr and "DISPLAY" in done.stderr and "Traceback" not in done.stderr
-    done = subprocess.run([sys.executable, "-m", "bench.cli", "client", "--navigate", "fly"],
+    done = subprocess.run([sys.executable, "-m", "walkstream", "client", "--navigate", "fly"],
                           capture_output=True, text=True, timeout=60, env=_env(None), cwd=ROOT)
     assert done.returncode != 0 and "--window" in done.stderr
 

@@ -1,0 +1,104 @@
+"""The server's side of the load test: its ``/metrics`` (Prometheus text) read into a ``Scrape``,
+histogram quantiles over a window between two scrapes, and a process's CPU seconds from ``/proc``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["Scrape", "parse_metrics", "histogram_quantile", "hist_delta", "quantiles_ms", "proc_cpu"]
+
+
+# --------------------------------------------------------------------------- the server's /metrics
+
+
+@dataclass
+class Scrape:
+    """One reading of ``/metrics`` at monotonic time ``at``.
+
+    hist : histogram name → (le (b,) float64 with +inf last, cumulative counts (b,) float64), summed over labels
+    values : sample name (counters with ``_total``) → value, summed over labels
+    errors : ``walkstream_errors_total`` by ``code``
+    """
+
+    at: float
+    hist: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    values: dict[str, float] = field(default_factory=dict)
+    errors: dict[str, float] = field(default_factory=dict)
+
+
+def parse_metrics(text: str, at: float = 0.0) -> Scrape:
+    """Prometheus text → ``Scrape`` (prometheus_client's parser)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    out = Scrape(at=at)
+    buckets: dict[str, dict[float, float]] = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            if family.type == "histogram" and s.name.endswith("_bucket"):
+                le = float(s.labels["le"])
+                b = buckets.setdefault(s.name[: -len("_bucket")], {})
+                b[le] = b.get(le, 0.0) + float(s.value)
+                continue
+            out.values[s.name] = out.values.get(s.name, 0.0) + float(s.value)
+            if s.name == "walkstream_errors_total" and "code" in s.labels:
+                out.errors[s.labels["code"]] = out.errors.get(s.labels["code"], 0.0) + float(s.value)
+    for name, b in buckets.items():
+        le = np.array(sorted(b), np.float64)
+        out.hist[name] = (le, np.array([b[x] for x in le], np.float64))
+    return out
+
+
+def histogram_quantile(le: np.ndarray, cumulative: np.ndarray, q: float) -> float:
+    """The q-quantile of a cumulative histogram by linear interpolation within its bucket (Prometheus' rule).
+
+    Returns NaN for an empty histogram, and the largest finite bound when the
+    quantile falls in the +Inf bucket.
+    """
+    le = np.asarray(le, np.float64)
+    cum = np.asarray(cumulative, np.float64)
+    if cum.size == 0 or cum[-1] <= 0:
+        return math.nan
+    rank = q * cum[-1]
+    i = int(np.searchsorted(cum, rank, side="left"))
+    i = min(i, cum.size - 1)
+    if math.isinf(le[i]):
+        finite = le[np.isfinite(le)]
+        return float(finite[-1]) if finite.size else math.nan
+    lo = le[i - 1] if i > 0 else 0.0
+    c_lo = cum[i - 1] if i > 0 else 0.0
+    if cum[i] <= c_lo:
+        return float(le[i])
+    return float(lo + (le[i] - lo) * (rank - c_lo) / (cum[i] - c_lo))
+
+
+def hist_delta(a: Scrape | None, b: Scrape, name: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """The histogram's observations between two scrapes (b − a), or None when the server lacks it."""
+    hb = b.hist.get(name)
+    if hb is None:
+        return None
+    ha = a.hist.get(name) if a is not None else None
+    if ha is None or ha[0].shape != hb[0].shape or not np.array_equal(ha[0], hb[0]):
+        return hb
+    return hb[0], np.maximum(hb[1] - ha[1], 0.0)
+
+
+def quantiles_ms(a: Scrape | None, b: Scrape, name: str) -> tuple[float | None, float | None, int]:
+    h = hist_delta(a, b, name)
+    if h is None or h[1][-1] <= 0:
+        return None, None, 0
+    return (histogram_quantile(*h, 0.5) * 1e3, histogram_quantile(*h, 0.99) * 1e3, int(h[1][-1]))
+
+
+def proc_cpu(pid: int) -> float | None:
+    """utime + stime of a local process (s): the fallback when /metrics has no process collector."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None

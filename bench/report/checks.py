@@ -1,0 +1,262 @@
+"""The done-when checks, each with the margin by which it passes or misses, and the points of the
+quality chart with their Pareto front (image error against mean frame time, lower is better in both).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from bench.report.results import budget_free, finite, method_order, nearly_equal, run_at, target_of
+
+__all__ = [
+    "STD_RATIO_LIMIT", "MAX_RATIO_LIMIT", "quality_points", "pareto", "pareto_miss", "point_label", "verdict_word",
+    "bound_frames", "checks",
+]
+
+
+#: The done-when limits: Optimization's std ≤ a third of Static's and Feedback's, max ≤ 1.10 × target.
+STD_RATIO_LIMIT = 1.0 / 3.0
+MAX_RATIO_LIMIT = 1.10
+
+
+#: Relative slack on the limits, so a figure exactly at a limit passes despite float rounding.
+_REL_EPS = 1e-9
+
+
+def quality_points(results: dict) -> list[dict]:
+    """Every (method, budget) run as a point: method, budget_ms (None if budget-free), frame_mean_ms,
+    flip_mean, psnr_mean, ssim_mean (None where not measured). A budget-free method gives one point."""
+    points = []
+    for method in method_order(results):
+        for run in results.get("runs") or []:
+            if run.get("method") != method:
+                continue
+            s = run.get("summary") or {}
+            points.append({
+                "method": method,
+                "budget_ms": None if budget_free(run) else finite(run.get("target_ms")),
+                "frame_mean_ms": finite(s.get("frame_mean_ms")),
+                "flip_mean": finite(s.get("flip_mean")),
+                "psnr_mean": s.get("psnr_mean"),
+                "ssim_mean": finite(s.get("ssim_mean")),
+            })
+    return points
+
+
+def _xy(points) -> np.ndarray:
+    xy = np.asarray(points, dtype=float).reshape(-1, 2) if len(points) else np.zeros((0, 2))
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise ValueError(f"points must be (n, 2) pairs (frame time, error), got shape {xy.shape}")
+    return xy
+
+
+def pareto(points) -> np.ndarray:
+    """(n,) bool: the points no other point dominates, both axes lower-is-better.
+
+    points : (n, 2) — (mean frame time, mean FLIP). q dominates p when q ≤ p on both axes and q < p on
+    at least one; equal points do not dominate each other, so ties are all on the front. A point with a
+    NaN coordinate is neither on the front nor dominates anything.
+    """
+    xy = _xy(points)
+    ok = np.isfinite(xy).all(axis=1)
+    le = (xy[:, None, :] <= xy[None, :, :]).all(axis=2)  # le[q, p]: q ≤ p on both axes
+    lt = (xy[:, None, :] < xy[None, :, :]).any(axis=2)
+    dominated = (le & lt & ok[:, None]).any(axis=0)
+    return ok & ~dominated
+
+
+def pareto_miss(points, i: int) -> tuple[float, int | None]:
+    """How far point ``i`` is from the front: (relative improvement, index of a point that dominates it).
+
+    The improvement is the smallest relative decrease of either coordinate alone (frame time or error)
+    that puts the point on the front: 0.0 when it already is, 1.0 when only a zero coordinate would do,
+    NaN for a point with a NaN coordinate. The index names the dominating point nearest in that sense
+    (None when on the front).
+    """
+    xy = _xy(points)
+    p = xy[i]
+    if not np.isfinite(p).all():
+        return math.nan, None
+    if pareto(xy)[i]:
+        return 0.0, None
+    others = np.isfinite(xy).all(axis=1)
+    others[i] = False
+    best, who = math.inf, None
+    for axis in (0, 1):
+        other = 1 - axis
+        # to escape domination along ``axis``, p must beat every q at least as good on the other axis
+        rivals = np.flatnonzero(others & (xy[:, other] <= p[other]))
+        if rivals.size == 0 or p[axis] <= 0:
+            continue
+        j = int(rivals[np.argmin(xy[rivals, axis])])
+        need = float(min(1.0, max(0.0, 1.0 - xy[j, axis] / p[axis])))
+        if need < best:
+            best, who = need, j
+    return (best if math.isfinite(best) else 1.0), who
+
+
+# ----------------------------------------------------------------------------- the done-when checks
+
+
+def _check(name: str, passed: bool | None, value: float | None, limit: float | None, line: str, **extra) -> dict:
+    return {"name": name, "passed": passed, "value": value, "limit": limit, "line": line, **extra}
+
+
+def _skip(name: str, why: str) -> dict:
+    return _check(name, None, None, None, f"SKIP {name}: {why}", skipped=why)
+
+
+def verdict_word(passed: bool | None) -> str:
+    return "SKIP" if passed is None else ("PASS" if passed else "FAIL")
+
+
+def _std_check(name: str, opt: dict | None, ref: dict | None, ref_name: str) -> dict:
+    if opt is None or ref is None:
+        return _skip(name, f"no {'optimization' if opt is None else ref_name} run at the target")
+    o, r = finite(opt.get("frame_std_ms")), finite(ref.get("frame_std_ms"))
+    if o is None or r is None:
+        return _skip(name, "frame-time std not measured")
+    ratio = o / r if r > 0 else (0.0 if o == 0 else math.inf)
+    passed = o <= STD_RATIO_LIMIT * r * (1 + _REL_EPS) + 1e-12
+    miss = "" if passed else f", misses by {ratio / STD_RATIO_LIMIT:.2f}× (needs std ≤ {STD_RATIO_LIMIT * r:.2f} ms)"
+    line = (f"{verdict_word(passed)} {name}: optimization std {o:.2f} ms = {ratio:.3f} × {ref_name}'s {r:.2f} ms "
+            f"(limit {STD_RATIO_LIMIT:.3f}){miss}")
+    return _check(name, passed, ratio, STD_RATIO_LIMIT, line)
+
+
+def point_label(point: dict) -> str:
+    budget = point.get("budget_ms")
+    return f"{point['method']}@{'any' if budget is None else f'{budget:g}'}"
+
+
+def _pareto_check(name: str, method: str, points: list[dict], target: float) -> dict:
+    usable = [p for p in points if p["frame_mean_ms"] is not None and p["flip_mean"] is not None]
+    mine = [k for k, p in enumerate(usable) if p["method"] == method]
+    if not mine:
+        return _skip(name, f"no {method} run with image quality measured")
+    at = [k for k in mine if usable[k]["budget_ms"] is None or nearly_equal(usable[k]["budget_ms"], target)]
+    if not at:
+        return _skip(name, f"no {method} run at the target {target:g} ms with image quality measured")
+    xy = np.array([[p["frame_mean_ms"], p["flip_mean"]] for p in usable])
+    front = pareto(xy)
+    per_budget = {}
+    for k in mine:
+        miss, _ = pareto_miss(xy, k)
+        per_budget[point_label(usable[k])] = miss
+    i = at[0]
+    miss, who = pareto_miss(xy, i)
+    passed = bool(front[i])
+    p = usable[i]
+    line = (f"{verdict_word(passed)} {name}: {point_label(p)} (frame mean {p['frame_mean_ms']:.1f} ms, FLIP "
+            f"{p['flip_mean']:.4f}) is {'on' if passed else 'off'} the Pareto front of {len(usable)} points")
+    if not passed and who is not None:
+        q = usable[who]
+        line += (f"; dominated by {point_label(q)} ({q['frame_mean_ms']:.1f} ms, FLIP {q['flip_mean']:.4f}): "
+                 f"needs {100 * miss:.1f} % lower frame time or FLIP")
+    on = sum(1 for k in mine if front[k])
+    line += f"; {on} of {len(mine)} {method} points on the front"
+    return _check(name, passed, miss, 0.0, line, budgets=per_budget)
+
+
+def bound_frames(results: dict, target_ms: float | None = None) -> dict | None:
+    """Where the budget binds: each method's frame figures over the frames at which full detail (the ``none``
+    run, at the same tour time) takes longer than the target.
+
+    F&S's Table 1 std is over the whole path, and on a path with a cheap stretch (the auditorium's viewpoint
+    B, where full detail is well under the target) every method draws fast frames there — none has anything
+    to spend the budget on — so the std measures the stretch as much as the method. Over the frames where
+    full detail exceeds the target, a method that holds the budget shows a steady time. Frames are those after the
+    warm-up that draw a selection; None's time at t is interpolated between its frames. Returns
+    {"share": share of the optimization run's frames that are bound, "methods": {method: {frames,
+    frame_mean_ms, frame_std_ms, frame_max_ms}}}, or None without a ``none`` run.
+    """
+    target = target_of(results, target_ms)
+    ref = run_at(results, "none", target)
+    frames = (ref or {}).get("frames") or {}
+    if not frames.get("t"):
+        return None
+    warmup = float(results.get("warmup_s") or 0.0)
+    rt = np.asarray(frames["t"], np.float64)
+    rms = np.asarray(frames["time_ms"], np.float64)
+    rseq = np.asarray(frames.get("seq") or np.zeros(rt.size), np.int64)
+    keep = rseq >= 0
+    if keep.sum() < 2:
+        return None
+    rt, rms = rt[keep], rms[keep]
+    out: dict[str, Any] = {"methods": {}, "share": None}
+    for method in method_order(results):
+        run = run_at(results, method, target)
+        f = (run or {}).get("frames") or {}
+        if not f.get("t"):
+            continue
+        t = np.asarray(f["t"], np.float64)
+        ms = np.asarray(f["time_ms"], np.float64)
+        seq = np.asarray(f.get("seq") or np.zeros(t.size), np.int64)
+        use = (t >= warmup) & (seq >= 0) & (t >= rt[0]) & (t <= rt[-1])
+        bound = use & (np.interp(t, rt, rms) > target)
+        v = ms[bound]
+        out["methods"][method] = {
+            "frames": int(bound.sum()),
+            "frame_mean_ms": float(v.mean()) if v.size else None,
+            "frame_std_ms": float(v.std()) if v.size else None,
+            "frame_max_ms": float(v.max()) if v.size else None,
+        }
+        if method == "optimization" and use.any():
+            out["share"] = float(bound.sum() / use.sum())
+    return out
+
+
+def checks(results: dict) -> list[dict]:
+    """The evaluation's done-when checks at the headline target, each {name, passed, value, limit, line}.
+
+    - ``opt_std_vs_static`` / ``opt_std_vs_feedback``: value = Optimization's frame-time std ÷ the other's,
+      limit 1/3 (at the limit passes);
+    - ``opt_max``: value = Optimization's max frame time ÷ target, limit 1.10;
+    - ``opt_std_bound_vs_static`` / ``opt_std_bound_vs_feedback``: the std checks over the frames where full
+      detail exceeds the target (``bound_frames``; beyond the headline checks: where the budget binds);
+    - ``opt_pareto`` / ``pred_pareto``: the method's point at the target against every (method, budget)
+      point of the quality chart; value = the smallest relative improvement of frame time or FLIP that
+      puts it on the front (0 on it), limit 0; ``budgets`` gives that figure for each of its budgets.
+
+    A check whose methods or figures are absent has ``passed`` None and a ``skipped`` reason.
+    """
+    target = target_of(results, None)
+    opt = run_at(results, "optimization", target)
+    static = run_at(results, "static", target)
+    feedback = run_at(results, "feedback", target)
+    s = lambda run: None if run is None else (run.get("summary") or {})  # noqa: E731
+    out = [
+        _std_check("opt_std_vs_static", s(opt), s(static), "static"),
+        _std_check("opt_std_vs_feedback", s(opt), s(feedback), "feedback"),
+    ]
+    mx = finite((s(opt) or {}).get("frame_max_ms"))
+    if opt is None or mx is None:
+        out.append(_skip("opt_max", "no optimization run at the target" if opt is None else "max not measured"))
+    else:
+        ratio = mx / target
+        passed = mx <= MAX_RATIO_LIMIT * target * (1 + _REL_EPS)
+        miss = "" if passed else f", misses by {mx - MAX_RATIO_LIMIT * target:.1f} ms"
+        out.append(_check("opt_max", passed, ratio, MAX_RATIO_LIMIT,
+                          f"{verdict_word(passed)} opt_max: optimization max {mx:.1f} ms = {ratio:.3f} × target "
+                          f"{target:g} ms (limit {MAX_RATIO_LIMIT:.2f}){miss}"))
+    bound = bound_frames(results, target)
+    for ref_name in ("static", "feedback"):
+        name = f"opt_std_bound_vs_{ref_name}"
+        by = (bound or {}).get("methods", {})
+        if bound is None:
+            out.append(_skip(name, "no none run to tell where full detail exceeds the target"))
+            continue
+        c = _std_check(name, by.get("optimization"), by.get(ref_name), ref_name)
+        if c["passed"] is not None:
+            share = bound["share"]
+            c["line"] += (f" — over the frames where full detail exceeds the target"
+                          + ("" if share is None else f" ({100 * share:.0f} % of optimization's)"))
+            c["share"] = share
+        out.append(c)
+    points = quality_points(results)
+    out.append(_pareto_check("opt_pareto", "optimization", points, target))
+    out.append(_pareto_check("pred_pareto", "predictive", points, target))
+    return out

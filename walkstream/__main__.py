@@ -1,0 +1,5 @@
+"""``python -m walkstream``: the command line."""
+
+from walkstream.cli import main
+
+main()

@@ -1,0 +1,91 @@
+"""The ``walkstream`` command line: the root app, assembled from the commands of each part.
+
+The server's commands (``build``, ``inspect``, ``serve``) live in ``server/cli.py`` and the
+benchmarks and evaluations (``demo``, ``loadtest``, ``eval``, ``bench ...``) in ``bench/cli.py``.
+The ``client`` command lives here: it checks the solver against the server's registry and
+prints the demo's frame-time summary, and the client package imports only ``proto``.
+Each command imports what it needs when it runs, so ``--help`` is instant.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Literal, Optional
+
+import typer
+
+from bench import cli as bench_cli
+from server import cli as server_cli
+from server.cli import SOLVER_HELP, check_solver
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="walkstream: streamed walkthroughs that hold the frame rate you ask for.",
+)
+
+
+def client(
+    url: str = typer.Argument("ws://127.0.0.1:8765/ws", help="the server's websocket URL"),
+    scene: str = typer.Option("demo", help="scene name"),
+    duration: Optional[float] = typer.Option(None, help="seconds to run (default: 10; with --window, until "
+                                             "the window is closed)"),
+    target_ms: float = typer.Option(50.0, help="target frame time in milliseconds"),
+    width: int = typer.Option(640),
+    height: int = typer.Option(360),
+    screenshot: Optional[Path] = typer.Option(None, help="write the last frame to this PNG"),
+    solver: str = typer.Option("greedy", help=SOLVER_HELP),
+    predict: bool = typer.Option(True, help="ask the server to select for the predicted camera path"),
+    morph: bool = typer.Option(True, help="ask for geomorph schedules (off: levels switch at once)"),
+    window: bool = typer.Option(False, "--window", help="show the frames in a window (needs a display; "
+                                "xvfb-run for a virtual one). Keys: WASD move, Q/E down/up, drag looks, "
+                                "Shift faster, Tab fly/walk, F false colour, P screenshot, Esc quits"),
+    navigate: Literal["tour", "fly", "walk"] = typer.Option(
+        "tour", help="who moves the camera: the scene's tour, or you flying or walking (needs --window)"),
+    false_colour: bool = typer.Option(False, "--false-colour", help="draw each object in a false colour"),
+    reconnect_timeout: float = typer.Option(10.0, min=0.0, help="seconds to keep redialling a lost connection "
+                                            "(resuming the session, nothing re-sent); 0: a loss ends the run"),
+) -> None:
+    """Run the client over the scene's tour (headless, or in a window you can navigate) and print its frame times."""
+    from client.app import run_client
+    from client.connection import ClientError
+    from client.window import WindowError
+
+    check_solver(solver)
+    if navigate != "tour" and not window:
+        raise typer.BadParameter("fly and walk are driven by keys and mouse: add --window", param_hint="--navigate")
+    if duration is None:
+        duration = float("inf") if window else 10.0
+    try:
+        run = run_client(
+            url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3,
+            screenshot=screenshot, solver=solver, predict=predict, morph=morph, window=window, navigate=navigate,
+            false_colour=false_colour, reconnect_timeout=reconnect_timeout,
+        )
+    except (WindowError, ClientError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    from bench.demo import summarize
+
+    typer.echo(json.dumps({**summarize(run, target_ms / 1e3).as_dict(), "reconnects": len(run.reconnects),
+                           "resent": run.resent, "close_reason": run.close_reason}))
+
+
+app.command()(server_cli.build)
+app.command()(server_cli.inspect)
+app.command()(server_cli.serve)
+app.command()(client)
+app.command()(bench_cli.demo)
+app.command()(bench_cli.loadtest)
+app.command("eval")(bench_cli.eval_)
+app.add_typer(bench_cli.bench_app, name="bench")
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
