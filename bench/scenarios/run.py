@@ -343,7 +343,7 @@ def _coarsest_reps(index, cut: bool) -> np.ndarray:
 def coarsest_frame_ms(store: Path, index, anchor: Anchor, *, cut: bool, viewport: tuple[int, int],
                       fov_y: float = 60.0, frames: int = 15) -> float:
     """Median fenced time (ms) of drawing every object at its coarsest level from the anchor, drawn the way the
-    client draws a frame (``client.app``: the splat layer attached, weights, levels and algorithms given —
+    client draws a frame (``client.frame_loop``: the splat layer attached, weights, levels and algorithms given —
     flat, as the hierarchical solver draws), so the run's frames compare with it like for like."""
     from client.renderer import Renderer
     from client.splats import SplatLayer
