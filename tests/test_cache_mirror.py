@@ -13,7 +13,6 @@ the real headless client.
 
 from __future__ import annotations
 
-from time import perf_counter
 import asyncio
 import queue
 import socket
@@ -67,7 +66,7 @@ class Pair:
 
     def __init__(self, scenes, *, config=None, hello_bytes=None, client_bytes=None, lag=0, solver="greedy",
                  tamper=None):
-        self.s = Session(scenes, "mirror", config or SessionConfig(), stopwatch=perf_counter)
+        self.s = Session(scenes, "mirror", config or SessionConfig(), stopwatch=time.perf_counter)
         self.index = next(iter(scenes.values())).index
         hello = Hello(protocol=PROTOCOL_VERSION, scene=self.index.name, viewport=[640, 360],
                       target_frame_time=0.05, predict=False, solver=solver, cache_bytes=hello_bytes)

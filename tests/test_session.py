@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from time import perf_counter
+
 import msgpack
 import numpy as np
 import pytest

@@ -11,8 +11,8 @@ finer level — within the budget at every instant.
 
 from __future__ import annotations
 
-from time import perf_counter
 import heapq
+from time import perf_counter
 
 import numpy as np
 import pytest

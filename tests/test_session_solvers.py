@@ -7,6 +7,7 @@ hierarchical and mixed solvers see real hierarchies and vegetation.
 from __future__ import annotations
 
 from time import perf_counter
+
 import numpy as np
 import pytest
 

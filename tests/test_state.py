@@ -9,7 +9,6 @@ The stores run against a real redis-server (the ``redis_url`` fixture).
 
 from __future__ import annotations
 
-from time import perf_counter
 import asyncio
 import socket
 import time
@@ -113,7 +112,7 @@ class Client:
 
 
 def _drive(scenes, seconds=3.0, session_id="s1"):
-    session = Session(scenes, session_id, SessionConfig(), stopwatch=perf_counter)
+    session = Session(scenes, session_id, SessionConfig(), stopwatch=time.perf_counter)
     client = Client(scenes)
     (welcome,) = client.handle(session, session.receive(encode(_hello(scenes)), 0.0))
     client.run(session, seconds)
@@ -138,7 +137,7 @@ def test_snapshot_restore_resume_continues_and_sends_nothing_held(denhaag):
     assert unpack_snapshot(blob)["v"] == 1
 
     # Another replica: a new Session with the same id and token, the snapshot restored before the hello.
-    s2 = Session(denhaag, s1.id, SessionConfig(), token=s1.token, stopwatch=perf_counter)
+    s2 = Session(denhaag, s1.id, SessionConfig(), token=s1.token, stopwatch=time.perf_counter)
     s2.restore(blob)
     assert s2.state is SessionState.AWAIT_HELLO and not s2.dirty
     assert s2.seq == s1.seq and (s2.acks, s2.frames, s2.bytes_sent) == (s1.acks, s1.frames, s1.bytes_sent)
@@ -181,7 +180,7 @@ def test_snapshot_restore_resume_continues_and_sends_nothing_held(denhaag):
 def test_resume_without_held_uses_the_snapshot_mirror(denhaag):
     s1, client, _ = _drive(denhaag, seconds=2.0, session_id="s3")
     blob = s1.snapshot()
-    s2 = Session(denhaag, s1.id, token=s1.token, stopwatch=perf_counter)
+    s2 = Session(denhaag, s1.id, token=s1.token, stopwatch=time.perf_counter)
     s2.restore(blob)
     (w,) = client.handle(s2, s2.receive(encode(_hello(denhaag, resume=Resume(session=s1.id, token=s1.token))),
                                          client.t))
@@ -198,7 +197,7 @@ def test_a_fresh_session_with_held_sends_none_of_it(denhaag):
     pose_t = client.t
 
     def first_delta(hello_kw) -> tuple[Welcome, Delta]:
-        s = Session(denhaag, "fresh", SessionConfig(), stopwatch=perf_counter)
+        s = Session(denhaag, "fresh", SessionConfig(), stopwatch=time.perf_counter)
         c = Client(denhaag, cache=None)
         c.t = pose_t - STEP
         (w,) = c.handle(s, s.receive(encode(_hello(denhaag, **hello_kw)), 0.0))
@@ -218,7 +217,7 @@ def test_bad_held_is_refused_and_the_session_goes_on(denhaag):
     bomb = zlib.compress(b"\xff" * (4 << 20), 9)
     assert len(bomb) < 48 * 1024
     for bad in (b"not zlib at all", bomb, pack_held(np.array([n])), zlib.compress(b"\x01")[:-3]):
-        s = Session(denhaag, "bad", stopwatch=perf_counter)
+        s = Session(denhaag, "bad", stopwatch=time.perf_counter)
         out = s.receive(encode(_hello(denhaag, held=bad)), 0.0)
         assert [type(m) for m in out] == [Error] and out[0].code == "bad_held", out
         assert s.state is SessionState.AWAIT_HELLO and s.hello is None and s.errors == 1
@@ -228,7 +227,7 @@ def test_bad_held_is_refused_and_the_session_goes_on(denhaag):
 
 def test_bad_held_on_a_resume_keeps_the_restored_state(denhaag):
     s1, client, _ = _drive(denhaag, seconds=1.5, session_id="s5")
-    s2 = Session(denhaag, s1.id, token=s1.token, stopwatch=perf_counter)
+    s2 = Session(denhaag, s1.id, token=s1.token, stopwatch=time.perf_counter)
     s2.restore(s1.snapshot())
     resume = Resume(session=s1.id, token=s1.token)
     out = s2.receive(encode(_hello(denhaag, resume=resume, held=b"garbage")), client.t)
@@ -241,7 +240,7 @@ def test_a_hello_that_does_not_resume_starts_afresh(denhaag):
     s1, _, _ = _drive(denhaag, seconds=1.0, session_id="s6")
     blob = s1.snapshot()
     for resume in (None, Resume(session=s1.id, token="x" * 32)):
-        s2 = Session(denhaag, s1.id, token=s1.token, stopwatch=perf_counter)
+        s2 = Session(denhaag, s1.id, token=s1.token, stopwatch=time.perf_counter)
         s2.restore(blob)
         assert s2.seq == s1.seq
         w = s2.receive(encode(_hello(denhaag, resume=resume)), 0.0)[0]
@@ -267,30 +266,30 @@ def test_restore_refuses_garbage_and_foreign_blobs(denhaag, demo):
         variant(predictor={**state["predictor"], "_x": state["predictor"]["_t"]}),
     ]
     for b in bad:
-        s = Session(denhaag, s1.id, token=s1.token, stopwatch=perf_counter)
+        s = Session(denhaag, s1.id, token=s1.token, stopwatch=time.perf_counter)
         with pytest.raises(ValueError):
             s.restore(b)
         assert s.seq == 0 and s.cost.frames == 0 and s._restored is None  # untouched
     with pytest.raises(ValueError, match="not served"):
-        Session(demo, s1.id, stopwatch=perf_counter).restore(blob)
+        Session(demo, s1.id, stopwatch=time.perf_counter).restore(blob)
 
 
 def test_the_snapshot_format_holds_zach_cost_models_too(denhaag):
     config = SessionConfig(cost_model="zach")
-    s1 = Session(denhaag, "z", config, stopwatch=perf_counter)
+    s1 = Session(denhaag, "z", config, stopwatch=time.perf_counter)
     client = Client(denhaag)
     client.handle(s1, s1.receive(encode(_hello(denhaag)), 0.0))
     client.run(s1, 1.0)
     assert s1.cost.updates > 0
-    s2 = Session(denhaag, "z", config, token=s1.token, stopwatch=perf_counter)
+    s2 = Session(denhaag, "z", config, token=s1.token, stopwatch=time.perf_counter)
     s2.restore(s1.snapshot())
     assert s2.cost.c_vertex == s1.cost.c_vertex and s2.cost.updates == s1.cost.updates
     with pytest.raises(ValueError, match="zach"):
-        Session(denhaag, "z", SessionConfig(), token=s1.token, stopwatch=perf_counter).restore(s1.snapshot())
+        Session(denhaag, "z", SessionConfig(), token=s1.token, stopwatch=time.perf_counter).restore(s1.snapshot())
 
 
 def test_dirty_follows_what_is_worth_saving(denhaag):
-    s = Session(denhaag, "d", stopwatch=perf_counter)
+    s = Session(denhaag, "d", stopwatch=time.perf_counter)
     assert not s.dirty
     with pytest.raises(RuntimeError):
         s.snapshot()
@@ -312,7 +311,7 @@ def test_the_mirror_after_hello_is_the_held_set(demo, data):
     n = int(index.n_representations)
     ids = np.asarray(sorted(data.draw(st.sets(st.integers(0, n - 1), max_size=n))), np.int64)
     cache_bytes = data.draw(st.sampled_from([None, 1 << 16]))  # a budget smaller than the set: kept anyway
-    s = Session(demo, "h", stopwatch=perf_counter)
+    s = Session(demo, "h", stopwatch=time.perf_counter)
     w = s.receive(encode(_hello(demo, held=pack_held(ids), cache_bytes=cache_bytes)), 0.0)[0]
     rep_bytes = np.asarray(index.rep_bytes, np.int64)
     assert isinstance(w, Welcome) and w.held == ids.size
@@ -410,7 +409,7 @@ def test_redis_store_resumes_a_session_across_replicas(redis_url, denhaag):
 
     token, blob = asyncio.run(go())
     assert token == s1.token
-    s2 = Session(denhaag, s1.id, token=token, stopwatch=perf_counter)
+    s2 = Session(denhaag, s1.id, token=token, stopwatch=time.perf_counter)
     s2.restore(blob)
     hello = _hello(denhaag, resume=Resume(session=s1.id, token=token), held=pack_held(_held_ids(client.cache)))
     (w,) = client.handle(s2, s2.receive(encode(hello), client.t))

@@ -4,6 +4,7 @@ counts only on what the client holds or will hold — the rest is drawn with its
 from __future__ import annotations
 
 from time import perf_counter
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -15,7 +16,7 @@ from proto.codec import decode_server, encode
 from proto.messages import Ack, Camera, Delta, Hello, Pong
 from server.scene.store import SceneStore
 from server.session import Session, SessionConfig
-from server.stream import gate, realise_bytes, resident_fallback
+from server.session.gate import gate, realise_bytes, resident_fallback
 
 
 # --------------------------------------------------------------------------- pure parts
