@@ -46,7 +46,7 @@ REGIME_FRAMES, REGIME_ERROR, REGIME_RATIO = 2, 0.3, 3.0
 YOUNG = 10
 #: No frame costs less than the fixed overhead c0, so c0 is bounded by the lightest frame measured — with a
 #: slack of LEAST_SLACK, as the overhead itself is noisy (the mean overhead of a stretch of empty frames is up
-#: to twice its lightest) — a bound that rises by LEAST_RISE a frame (doubling in ~700 frames, 20–60 s), as
+#: to twice its lightest) — a bound that rises by LEAST_RISE a frame (doubling in about 700 frames), as
 #: old evidence of a faster machine fades.
 LEAST_SLACK, LEAST_RISE = 2.0, 1e-3
 
@@ -252,10 +252,10 @@ class OnlineCostModel:
         #: Frames shorter than this, measured and predicted, do not count in ``tail_ratio`` (the session sets a
         #: share of its target): on a near-empty view the overhead's noise is a large share of a small frame.
         #: Nor do they move a model's per-unit prices (per vertex, face, pixel, draw, splat), only its c0: a
-        #: renderer costs less per triangle at light loads than at the budget's (llvmpipe: ~30 ns up to 128k,
-        #: ~200 ns beyond 256k), so after twelve seconds of the auditorium's stage the cost per vertex was half
-        #: the hall's, and the hall's first selection drew 300k triangles in 70–90 ms frames. A model whose
-        #: prediction is not light (one pricing the work too high) still learns from light frames.
+        #: renderer costs less per triangle at light loads than at the budget's, so prices learnt on a long
+        #: stretch of light frames would underprice the next heavy view and its first frames would overrun
+        #: the budget. A model whose prediction is not light (one pricing the work too high) still learns
+        #: from light frames.
         self.tail_min_time = 0.0
         self.recent = max(1, window // 3)
         self.hold = max(1, window // 12)
@@ -264,8 +264,8 @@ class OnlineCostModel:
         self._lam = forgetting
         #: The lightest frame measured (empty ones too), rising by LEAST_RISE a frame: c0 ≤ LEAST_SLACK × it. On a
         #: tour whose frames all carry about the same load, c0 and the per-vertex cost are collinear and the
-        #: held-out error cannot tell a model that puts the frame in c0 (31 ms of 34, c_vert ≈ 0: seen on
-        #: the auditorium) from the right one, until the first larger selection costs 2.5× its prediction.
+        #: held-out error cannot tell a model that puts nearly the whole frame in c0 (c_vert ≈ 0) from the
+        #: right one, until the first larger selection costs far more than its prediction.
         self.least = math.inf
 
     # ------------------------------------------------------------------ feeding it
@@ -353,8 +353,8 @@ class OnlineCostModel:
             target = "vertex"
         elif self._regime_change():
             # The chosen model fails outright on the last frames while another predicts them: the scene's
-            # regime changed (back in the hall after the empty stage, where every model fitted the overhead
-            # alike and the simplest was kept). Take the best of those frames now, not after the hold — the
+            # regime changed (a heavy view after a stretch of near-empty ones, where every model fitted the
+            # overhead alike and the simplest was kept). Take the best of those frames now, not after the hold — the
             # next selection is priced by it.
             last = self.scores(REGIME_FRAMES)
             self.chosen, self._count = min(last, key=last.get), 0

@@ -155,9 +155,9 @@ class RobustRLS:
             e, w = 1.0 - float(b @ self.phi), 1.0
             self.changes += 1
         # Forgetting per coordinate, at the rate the frame informs it (vector forgetting): a term the frames
-        # do not exercise keeps what it knew. With one λ for all, twelve seconds of near-empty frames (the
-        # auditorium's stage) let the per-vertex cost random-walk on their noise, and the hall's first frames
-        # after came in at 2–3× the prediction.
+        # do not exercise keeps what it knew. With one λ for all, a long stretch of near-empty frames lets
+        # the per-vertex cost random-walk on their noise, and the first heavy frames after overrun the
+        # prediction.
         inflate = 1.0 / np.sqrt(1.0 - (1.0 - self.forgetting) * share)
         self.P *= np.outer(inflate, inflate)
         pb = self.P @ b

@@ -24,7 +24,7 @@ from proto.messages import ALGORITHMS, Delta, FrameReport, ModelAdd, Morphs, Rep
 from ..clock import Delivery
 from ..select.cost import FrameCostModel
 from ..select.morph import MorphScheduler, mark
-from ..select.selection import Memory, select
+from ..select.selection import Interval, Memory, select
 from ..select.snapshot import dump_fields, load_fields
 from ..select.solvers.candidates import NO_LIMIT, Limit
 from .gate import through_gate
@@ -183,7 +183,7 @@ class Pipeline:
         in_flight = delivery.in_flight(now, max_age=max(4 * config.tau, 1.0))
         left = max(link - in_flight, 0.0)
         budget = left / (1.0 + self.morph_share)  # the gate counts geometry; morph maps ride along
-        cam = view.views[0] if hasattr(view, "views") else view  # an Interval, or one View
+        cam = view.views[0] if isinstance(view, Interval) else view
         gated = through_gate(reps, algorithm, cam, self.table, mirror.resident, self.prev_rep, budget, in_flight)
         self.last_gate = {"link": left, "bandwidth": delivery.bandwidth, **gated.stats}
         self.deferred += gated.deferred
