@@ -276,7 +276,8 @@ class Predictor:
         keep = self._t >= self._t[-1] - self.window
         keep[-2:] = True
         self._t, self._x = self._t[keep], self._x[keep]
-        # Poses come many times per τ and predictions are asked for once per τ: fit lazily, but at least every REFIT_EVERY seconds of samples so the fastest motion seen (θ, ω) is still tracked.
+        # Poses come many times per τ and predictions are asked for once per τ: fit lazily, but at least
+        # every REFIT_EVERY seconds of samples so the fastest motion seen (θ, ω) is still tracked.
         self._stale = True
         if t >= self._fit_t + REFIT_EVERY:
             self._fit()

@@ -198,7 +198,8 @@ class Session:
             raise ProtocolError("unknown_solver", f"no solver {hello.solver!r}; known: {', '.join(sorted(solvers.SOLVERS))}")
         store = self.scenes[hello.scene]
         index = store.index
-        held = None if hello.held is None else unpack_held(hello.held, index.n_representations)  # bad_held: nothing changed yet
+        # A bad ``held`` is refused (bad_held) before anything changes.
+        held = None if hello.held is None else unpack_held(hello.held, index.n_representations)
         resumed = self._resumes(hello)
         restored, self._restored = self._restored, None
         self.hello = hello

@@ -63,7 +63,7 @@ class Pipeline:
         self.fallbacks = 0  # ... and were drawn coarser meanwhile
 
     def to_state(self) -> dict:
-        """{"fields": …, "optional": …}: the snapshot's figures of the selection (the session's fields hold them)."""
+        """{"fields": …, "optional": …}: the selection's figures a snapshot holds (among the session's fields)."""
         return {"fields": dump_fields(self, self.STATE), "optional": dump_fields(self, self.OPTIONAL, optional=True)}
 
     def from_state(self, fields, optional) -> None:
