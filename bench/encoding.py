@@ -11,6 +11,7 @@ order meshoptimizer's codecs exploit.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -111,7 +112,7 @@ def wire(path: Path, keys: int | None = 30) -> dict:
         verts = np.asarray(idx.rep_vertices, np.int64)
         faces = np.asarray(idx.rep_faces, np.int64)
         trees = np.asarray(idx.object_kind)[np.asarray(idx.rep_object)] == TREES
-        s = Session({idx.name: store}, "wire", SessionConfig(bandwidth=1e9))
+        s = Session({idx.name: store}, "wire", SessionConfig(bandwidth=1e9), stopwatch=time.perf_counter)
         s.receive(Hello(protocol=PROTOCOL_VERSION, scene=idx.name, viewport=[1280, 720], predict=False,
                         algorithms=["flat", "lit", "textured"]), 0.0)
         s.receive(Pong(id=1, sent=0.0, t=0.0), 0.0)

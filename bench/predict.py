@@ -20,7 +20,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from client.navigation import Tour
-from server.select.predict import Limits, Predictor
+from server.select.predict import MotionLimits, Predictor
 
 __all__ = ["run", "tours_from_stores", "WARMUP", "HORIZONS"]
 
@@ -95,7 +95,7 @@ def _scene(
     pred_eye = np.empty((len(h), len(scored), 3))
     pred_fwd = np.empty_like(pred_eye)
     opts = dict(options)
-    limits = opts.pop("limits", Limits())
+    limits = opts.pop("limits", MotionLimits())
     predictor = Predictor(limits, **opts)
     j = 0
     for i in range(len(t)):
@@ -155,7 +155,7 @@ def run(
     rate : camera samples per second; jitter : Gaussian noise on the eye, metres;
     turn_jitter_deg : noise on the view direction (default 0.5° when ``jitter`` > 0, else none)
     duration : tour seconds sampled (default one loop of each tour)
-    predictor : keyword arguments of ``Predictor`` (``limits`` = a ``Limits``)
+    predictor : keyword arguments of ``Predictor`` (``limits`` = a ``MotionLimits``)
     progress : tick(stage, done, total), called as samples are fed
     returns {"rows": [...], "lines": [...], "config": {...}}: a row per scene and horizon (and per
     horizon over all scenes when there are several) with mean and p95 errors, the hold's, and ratios.

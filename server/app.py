@@ -10,7 +10,7 @@ before it polls again: a client that does not read makes only its own session
 wait (uvicorn's send waits while the transport's buffer is full).
 
 Session state is saved to a ``StateStore`` after each delta, after acks that
-changed it (at most every ``Limits.save_interval``) and on disconnect, so a
+changed it (at most every ``ReplicaLimits.save_interval``) and on disconnect, so a
 client that lost its connection can resume on any replica sharing the store.
 """
 
@@ -25,7 +25,7 @@ import uuid
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Mapping
+from typing import Callable, Mapping
 
 from fastapi import Depends, FastAPI, HTTPException, Request, Response, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel
@@ -34,7 +34,7 @@ from proto.codec import decode_client, encode
 from proto.errors import ERROR_CODES, ProtocolError
 from proto.messages import Delta, Error, Hello, Resume
 
-from .limits import WS_MAX_SIZE, Limits, RateGuard
+from .limits import WS_MAX_SIZE, ReplicaLimits, RateGuard
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .scene.store import SceneStore
 from .session import Session, SessionConfig, SessionState
@@ -117,13 +117,17 @@ def create_app(
     config: SessionConfig | None = None,
     *,
     state: StateStore | None = None,
-    limits: Limits | None = None,
+    limits: ReplicaLimits | None = None,
     admin_token: str | None = None,
     replica: str | None = None,
+    stopwatch: Callable[[], float] = time.perf_counter,
 ) -> FastAPI:
-    """The service for ``scenes``; ``state`` keeps session state for resumes (default: in this process's memory)."""
+    """The service for ``scenes``; ``state`` keeps session state for resumes (default: in this process's memory).
+
+    ``stopwatch`` is the clock every session's selection is timed by (its deadline, the compute time it reports).
+    """
     config = config or SessionConfig()
-    limits = limits or Limits()
+    limits = limits or ReplicaLimits()
     store: StateStore = state if state is not None else MemoryStateStore()
     replica = replica or socket.gethostname()
     conns: dict[str, _Connection] = {}
@@ -260,7 +264,7 @@ def create_app(
             found = await store.load(ask.session) or found
         # A new token for the new owner (the welcome carries it); saves are fenced by the one resumed from, so
         # the old owner's late saves — under the old token — no longer overwrite this session's state.
-        session = Session(scenes, ask.session, config)
+        session = Session(scenes, ask.session, config, stopwatch=stopwatch)
         session.fence = found[0]
         loop = asyncio.get_running_loop()
         try:
@@ -291,7 +295,7 @@ def create_app(
             return
         loop = asyncio.get_running_loop()
         now = time.monotonic()
-        conn = _Connection(ws, Session(scenes, uuid.uuid4().hex, config), now)
+        conn = _Connection(ws, Session(scenes, uuid.uuid4().hex, config, stopwatch=stopwatch), now)
         register(conn)
         guard = RateGuard(limits, now)
 
@@ -475,7 +479,7 @@ def serve(
     log_level: str = "warning",
     announce=print,
     *,
-    limits: Limits | None = None,
+    limits: ReplicaLimits | None = None,
     state_url: str | None = None,
     admin_token: str | None = None,
     replica: str | None = None,
@@ -483,7 +487,7 @@ def serve(
     """Run uvicorn on ``host:port`` (port 0: any free port, announced once listening)."""
     import uvicorn
 
-    limits = limits or Limits()
+    limits = limits or ReplicaLimits()
     try:
         state = open_state_store(state_url)
     except Exception as exc:  # an unknown scheme, a malformed URL

@@ -151,7 +151,7 @@ def serve(
     """Serve scene stores over websockets at /ws (plus /health, /scenes, /metrics, and /sessions for admins)."""
     from server.app import ServeError
     from server.app import serve as run_server
-    from server.limits import Limits
+    from server.limits import ReplicaLimits
     from server.scene.store import StoreError
     from server.session import SessionConfig
 
@@ -168,7 +168,7 @@ def serve(
     if send_buffer is not None:
         given["send_buffer"] = send_buffer
     try:
-        limits = Limits(**given)
+        limits = ReplicaLimits(**given)
     except ValueError as exc:
         name = str(exc).split()[0]
         raise typer.BadParameter(str(exc), param_hint="--" + name.replace("_", "-")) from None

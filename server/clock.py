@@ -17,6 +17,8 @@ from collections import deque
 
 import numpy as np
 
+from .select.snapshot import dump_fields, load_fields
+
 __all__ = ["ClockSync", "Delivery"]
 
 
@@ -52,6 +54,16 @@ class ClockSync:
     @property
     def rtt(self) -> float:
         return min(self._samples)[0] if self._samples else 0.0
+
+    #: The fields a snapshot holds (a snapshot without them still loads).
+    STATE = ("_samples", "_guess")
+
+    def to_state(self) -> dict:
+        return dump_fields(self, self.STATE)
+
+    def from_state(self, state) -> None:
+        """Take in ``to_state``'s data; ValueError (clock unchanged) if it does not fit."""
+        load_fields(self, state, self.STATE, "clock", optional=True)
 
     def client_time(self, server_now: float) -> float:
         return server_now + self.offset
@@ -97,10 +109,20 @@ class Delivery:
             self.bandwidth = float(np.median(self._rates))
         return took
 
-    def in_flight(self, server_now: float, horizon: float = 5.0) -> int:
-        """Bytes of deltas sent in the last ``horizon`` seconds and not yet acked: what still fills the link
+    def in_flight(self, server_now: float, max_age: float = 5.0) -> int:
+        """Bytes of deltas sent less than ``max_age`` seconds ago and not yet acked: what still fills the link
         (older ones are taken as lost, so a client that stopped acking cannot stall the stream for ever)."""
-        return int(sum(n for at, n, _ in self._sent.values() if server_now - at < horizon))
+        return int(sum(n for at, n, _ in self._sent.values() if server_now - at < max_age))
 
     def estimate(self, nbytes: float, clock: ClockSync) -> float:
         return 0.5 * clock.rtt + float(nbytes) / self.bandwidth
+
+    #: The fields a snapshot holds: the link's figures, not the deltas in flight (a resume restarts them).
+    STATE = ("bandwidth", "min_bytes", "_rates", "last")
+
+    def to_state(self) -> dict:
+        return dump_fields(self, self.STATE)
+
+    def from_state(self, state) -> None:
+        """Take in ``to_state``'s data; ValueError (delivery unchanged) if it does not fit."""
+        load_fields(self, state, self.STATE, "delivery", optional=True)

@@ -12,7 +12,7 @@ import math
 import os
 from dataclasses import dataclass, field
 
-__all__ = ["Limits", "TokenBucket", "RateGuard", "WS_MAX_SIZE"]
+__all__ = ["ReplicaLimits", "TokenBucket", "RateGuard", "WS_MAX_SIZE"]
 
 #: Frames above this are refused by the websocket layer itself (close 1009); between
 #: ``proto.codec.MAX_CLIENT_FRAME`` and this, the codec answers with a ``too_large`` error frame.
@@ -24,7 +24,7 @@ def _cpus() -> int:
 
 
 @dataclass(frozen=True)
-class Limits:
+class ReplicaLimits:
     """Per-replica limits (``walkstream serve`` options of the same names).
 
     max_sessions : websocket connections served at once; past it: Error("busy"), close 1013
@@ -116,7 +116,7 @@ class RateGuard:
 
     PASS, DROP, ANSWER, CLOSE = "pass", "drop", "answer", "close"
 
-    def __init__(self, limits: Limits, now: float) -> None:
+    def __init__(self, limits: ReplicaLimits, now: float) -> None:
         self.limits = limits
         self.bucket = TokenBucket(limits.rate, limits.burst, now)
         self.abuse_since: float | None = None

@@ -12,13 +12,12 @@ Two stores: ``MemoryStateStore`` (one process, the default) and
 snapshot ``ttl`` seconds after its last save, so an abandoned session costs
 nothing for long.
 
-The codec here reads and writes the attributes of the algorithm objects
-(``CostModel``, ``OnlineCostModel``, ``Predictor``, ``ClockSync``,
-``Delivery``) rather than teaching each of them to serialize itself: those
-modules stay pure, and the snapshot format lives in one place. Restoring goes
-*into* a freshly built object, whose attributes say what type and shape each
-value must have, so a corrupt or foreign blob is refused (ValueError) instead
-of producing a session that fails later.
+What goes into a snapshot is each part's own business: every part of a
+session that outlives a connection has ``to_state`` / ``from_state``
+(``select.snapshot`` writes and checks the fields). Here the whole is only
+packed, stamped with its format and version, unpacked and checked for size and
+stamp, and kept — fenced, so a replica that lost a session cannot overwrite the
+state of the one that took it over.
 """
 
 from __future__ import annotations
@@ -27,11 +26,9 @@ import math
 import re
 import time
 import urllib.parse
-from collections import deque
-from typing import Any, Callable, Protocol, runtime_checkable
+from typing import Callable, Protocol, runtime_checkable
 
 import msgpack
-import numpy as np
 
 __all__ = [
     "StateStore",
@@ -43,12 +40,6 @@ __all__ = [
     "SNAPSHOT_VERSION",
     "pack_snapshot",
     "unpack_snapshot",
-    "save_attrs",
-    "load_attrs",
-    "cost_state",
-    "load_cost",
-    "predictor_state",
-    "load_predictor",
 ]
 
 #: What a session token looks like (proto ``Resume.token``).
@@ -256,189 +247,3 @@ def unpack_snapshot(blob: bytes) -> dict:
     if state.get("v") != SNAPSHOT_VERSION:
         raise ValueError(f"session snapshot version {state.get('v')!r}; this server reads {SNAPSHOT_VERSION}")
     return state
-
-
-_PLAIN = {int, float, bool, str, type(None)}
-
-
-def _enc(value: Any) -> Any:
-    """One attribute as msgpack-able data: arrays (and deques) as raw bytes with dtype and shape."""
-    if type(value) in _PLAIN:
-        return value
-    if isinstance(value, deque):
-        value = np.asarray(list(value)) if value else np.zeros(0)
-    if isinstance(value, np.ndarray):
-        a = np.ascontiguousarray(value)
-        return {"nd": a.dtype.str, "shape": list(a.shape), "b": a.tobytes()}
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, tuple):
-        return list(value)
-    return value
-
-
-def _array(value: Any, name: str) -> np.ndarray:
-    if not (isinstance(value, dict) and set(value) == {"nd", "shape", "b"}):
-        raise ValueError(f"{name}: expected an array")
-    try:
-        dtype = np.dtype(value["nd"])
-        shape = tuple(int(s) for s in value["shape"])
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: bad array header: {exc}") from None
-    if dtype.kind not in "biuf" or any(s < 0 for s in shape):
-        raise ValueError(f"{name}: bad array header")
-    b = value["b"]
-    if not isinstance(b, bytes) or len(b) != dtype.itemsize * math.prod(shape):
-        raise ValueError(f"{name}: array payload does not match its shape")
-    return np.frombuffer(b, dtype).reshape(shape).copy()
-
-
-def _dec(value: Any, current: Any, name: str, variable: bool) -> Any:
-    """``value`` decoded as the type and shape of ``current`` (the fresh object's attribute); ValueError if not."""
-    if isinstance(current, np.ndarray):
-        a = _array(value, name)
-        if a.dtype != current.dtype or a.shape[1:] != current.shape[1:] or (not variable and a.shape != current.shape):
-            raise ValueError(f"{name}: expected {current.dtype} {current.shape}, got {a.dtype} {a.shape}")
-        if a.dtype.kind == "f" and not np.isfinite(a).all():
-            raise ValueError(f"{name}: not finite")
-        return a
-    if isinstance(current, deque):
-        a = _array(value, name)
-        if a.dtype.kind == "f" and not np.isfinite(a).all():
-            raise ValueError(f"{name}: not finite")
-        items = a.tolist() if a.ndim == 1 else [tuple(row) for row in a.tolist()]
-        if current.maxlen is not None and len(items) > current.maxlen:
-            raise ValueError(f"{name}: {len(items)} items, at most {current.maxlen}")
-        return deque(items, maxlen=current.maxlen)
-    if isinstance(current, bool):
-        if not isinstance(value, bool):
-            raise ValueError(f"{name}: expected a bool")
-        return value
-    if isinstance(current, (int, float, np.integer, np.floating)):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{name}: expected a number")
-        if isinstance(value, float) and not math.isfinite(value) and value != current:
-            raise ValueError(f"{name}: not finite")  # (-inf "never yet" markers stay allowed)
-        return float(value) if isinstance(current, (float, np.floating)) else value
-    if isinstance(current, str):
-        if not isinstance(value, str):
-            raise ValueError(f"{name}: expected a string")
-        return value
-    if isinstance(current, list):
-        if not isinstance(value, list) or len(value) != len(current):
-            raise ValueError(f"{name}: expected a list of {len(current)}")
-        return [_dec(v, c, f"{name}[{i}]", variable) for i, (v, c) in enumerate(zip(value, current))]
-    if isinstance(current, dict):
-        if not isinstance(value, dict):
-            raise ValueError(f"{name}: expected a map")
-        return value
-    if current is None:  # optional: None, a finite number or an array
-        if value is None:
-            return None
-        if isinstance(value, dict):
-            return _array(value, name)
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-            return float(value)
-        raise ValueError(f"{name}: expected None, a number or an array")
-    raise ValueError(f"{name}: cannot restore a {type(current).__name__}")
-
-
-def save_attrs(obj: Any, names: tuple[str, ...], optional: bool = False) -> dict:
-    """The named attributes of ``obj``; with ``optional`` those it lacks are left out (code that may evolve)."""
-    return {n: _enc(getattr(obj, n)) for n in names if not optional or hasattr(obj, n)}
-
-
-def load_attrs(obj: Any, state: Any, names: tuple[str, ...], what: str, optional: bool = False,
-               variable: tuple[str, ...] = ()) -> None:
-    """Set the named attributes of ``obj`` from ``save_attrs``' dict, checked against their current values.
-
-    All are decoded before any is set, so a bad blob leaves ``obj`` as it was.
-    """
-    if not isinstance(state, dict):
-        raise ValueError(f"{what}: expected a map")
-    out = {}
-    for n in names:
-        if not hasattr(obj, n):
-            if optional:
-                continue
-            raise ValueError(f"{what}: has no {n}")
-        if n not in state:
-            if optional:
-                continue
-            raise ValueError(f"{what}.{n} is missing")
-        out[n] = _dec(state[n], getattr(obj, n), f"{what}.{n}", n in variable)
-    for n, v in out.items():
-        setattr(obj, n, v)
-
-
-# -- the algorithm objects
-
-_ZACH = ("c_vertex", "alpha", "min_vertices", "updates", "algorithms", "c_poly", "c_vert", "c_pixel", "c_draw",
-         "fitted")
-_ONLINE = ("algorithms", "within", "window", "min_frames", "recent", "hold", "chosen", "frames", "_pending",
-           "_count", "_faces", "_verts", "_lam", "least")
-_RUNG = ("seen", "errors", "fill", "sides", "_num", "_den", "_lam")
-_RLS = ("k", "forgetting", "huber", "floor", "reopen", "slack", "threshold", "clip", "cap", "scale", "phi", "P",
-        "residuals", "updates", "changes", "_hi", "_lo", "_up", "_down")
-_PREDICTOR = ("window", "gap", "half_life", "teleport_speed", "teleport_turn", "min_speed", "min_turn", "resets",
-              "_t", "_x", "_floor", "_a", "_b", "_speed_seen", "_turn_seen")
-CLOCK = ("_samples", "_guess")
-DELIVERY = ("bandwidth", "min_bytes", "_rates", "last")
-
-
-def cost_state(cost: Any) -> dict:
-    """A ``CostModel`` ("zach") or ``OnlineCostModel`` ("online") as plain data: every coefficient and history."""
-    from .select.cost_online import OnlineCostModel
-
-    if isinstance(cost, OnlineCostModel):
-        rungs = {name: {**save_attrs(r, _RUNG), "rls": save_attrs(r.rls, _RLS)} for name, r in cost.rungs.items()}
-        return {"kind": "online", **save_attrs(cost, _ONLINE), "rungs": rungs}
-    return {"kind": "zach", **save_attrs(cost, _ZACH)}
-
-
-def load_cost(cost: Any, state: Any) -> None:
-    """Put ``cost_state``'s data into ``cost``, a fresh model of the same kind; ValueError if it does not fit."""
-    from .select.cost_online import MODELS, OnlineCostModel
-
-    if not isinstance(state, dict):
-        raise ValueError("cost: expected a map")
-    kind = "online" if isinstance(cost, OnlineCostModel) else "zach"
-    if state.get("kind") != kind:
-        raise ValueError(f"cost: the snapshot's model is {state.get('kind')!r}, this server's {kind!r}")
-    if kind == "zach":
-        load_attrs(cost, state, _ZACH, "cost")
-        return
-    rungs = state.get("rungs")
-    if not isinstance(rungs, dict) or set(rungs) != set(cost.rungs):
-        raise ValueError(f"cost: expected the rungs {sorted(cost.rungs)}")
-    for name in (state.get("chosen"), state.get("_pending")):
-        if name not in MODELS:
-            raise ValueError(f"cost: unknown model {name!r}")
-    # Decode into copies first so a bad rung leaves the model untouched.
-    import copy
-
-    trial = copy.deepcopy(cost)
-    load_attrs(trial, state, _ONLINE, "cost")
-    for name, rung in trial.rungs.items():
-        load_attrs(rung, rungs[name], _RUNG, f"cost.{name}")
-        load_attrs(rung.rls, rungs[name].get("rls"), _RLS, f"cost.{name}.rls")
-        rung._full = None
-    cost.__dict__.update(trial.__dict__)
-
-
-def predictor_state(p: Any) -> dict:
-    """A ``Predictor``'s history (recent poses and their fit) and the motion it has seen."""
-    if hasattr(p, "_fit"):
-        p._fit()  # the fit is lazy: bring it up to the poses held
-    return save_attrs(p, _PREDICTOR)
-
-
-def load_predictor(p: Any, state: Any) -> None:
-    """Put ``predictor_state``'s data into ``p`` (a fresh ``Predictor``; its limits stay its own)."""
-    import copy
-
-    trial = copy.copy(p)
-    load_attrs(trial, state, _PREDICTOR, "predictor", variable=("_t", "_x"))
-    if trial._t.shape[0] != trial._x.shape[0] or (trial._t.size and np.any(np.diff(trial._t) < 0)):
-        raise ValueError("predictor: times and poses do not match")
-    p.__dict__.update(trial.__dict__)

@@ -25,7 +25,7 @@ from proto import PROTOCOL_VERSION
 from proto.codec import decode_server, encode
 from proto.manifest import pack_held
 from proto.messages import Ack, Camera, Delta, Error, Hello, Ping, Pong, Resume, Welcome  # noqa: F401
-from server.limits import Limits, RateGuard, TokenBucket
+from server.limits import ReplicaLimits, RateGuard, TokenBucket
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -372,8 +372,8 @@ def test_limits_refuse_nonsense():
     for bad in (dict(max_sessions=0), dict(rate=-1), dict(burst=0.5), dict(idle_timeout=float("nan")),
                 dict(workers=0), dict(max_sessions=2.5), dict(state_ttl=0)):
         with pytest.raises(ValueError):
-            Limits(**bad)
-    assert Limits().workers >= 1
+            ReplicaLimits(**bad)
+    assert ReplicaLimits().workers >= 1
 
 
 @settings(max_examples=100, deadline=None)
@@ -396,7 +396,7 @@ def test_the_bucket_passes_no_more_than_burst_plus_rate_times_time(rate, burst, 
 
 
 def test_sustained_flooding_closes_and_a_pause_forgives():
-    limits = Limits(rate=10, burst=5, abuse_close=5.0, rate_error_interval=1.0)
+    limits = ReplicaLimits(rate=10, burst=5, abuse_close=5.0, rate_error_interval=1.0)
     guard = RateGuard(limits, now=0.0)
     verdicts = [guard.check(k * 0.01) for k in range(100)]  # 100 messages in a second
     assert verdicts[:5] == [RateGuard.PASS] * 5

@@ -55,8 +55,8 @@ def denhaag(denhaag_store):
 
 def _mirror(s: Session) -> tuple[int, int, int]:
     """(held, held_bytes, digest) of the mirror, recomputed from scratch (not from its running totals)."""
-    ids = np.nonzero(s._resident)[0]
-    return int(ids.size), int(s._rep_bytes[ids].sum()), digest(ids)
+    ids = np.nonzero(s.mirror.resident)[0]
+    return int(ids.size), int(s.mirror.table.rep_bytes[ids].sum()), digest(ids)
 
 
 def _holding(cache: ResidentCache) -> tuple[int, int, int]:
@@ -69,7 +69,7 @@ class Pair:
 
     def __init__(self, scenes, *, config=None, hello_bytes=None, client_bytes=None, lag=0, solver="greedy",
                  tamper=None):
-        self.s = Session(scenes, "mirror", config or SessionConfig())
+        self.s = Session(scenes, "mirror", config or SessionConfig(), stopwatch=time.perf_counter)
         self.index = next(iter(scenes.values())).index
         hello = Hello(protocol=PROTOCOL_VERSION, scene=self.index.name, viewport=[640, 360],
                       target_frame_time=0.05, predict=False, solver=solver, cache_bytes=hello_bytes)
@@ -123,7 +123,7 @@ class Pair:
 
     def check_totals(self) -> None:
         """The session's running totals are what its mirror array says, and the cache's are what it holds."""
-        assert tuple(self.s._held) == _mirror(self.s)
+        assert tuple(self.s.mirror.held) == _mirror(self.s)
         assert (self.cache.held, self.cache.held_bytes, self.cache.digest) == _holding(self.cache)
 
 
@@ -247,7 +247,7 @@ def test_unknown_repeated_and_lost_acks_do_no_harm(demo):
                 Ack(seq=last.seq, t=1.0, rejected=[some], held=0, held_bytes=0, digest=0),  # a repeat
                 Ack(seq=0, t=1.0, rejected=[some])):  # before the first delta
         assert s.receive(encode(ack), 50.0) == []
-    assert (_mirror(s), s.mirror_checks, s.mirror_mismatch, s.resyncs, s.refused) == before and not s._resync
+    assert (_mirror(s), s.mirror_checks, s.mirror_mismatch, s.resyncs, s.refused) == before and not s.mirror.resync
     # Deltas whose acks never come, then one whose record is gone (hundreds unacked): its refusals
     # cannot be placed, so the mirror is not trusted and the next delta resyncs.
     p.lag = 1_000
@@ -255,8 +255,8 @@ def test_unknown_repeated_and_lost_acks_do_no_harm(demo):
     p.pending.clear()
     p.lag = 0
     seq = s.seq
-    s._records.pop(seq)
-    assert s.receive(encode(Ack(seq=seq, t=1.0, rejected=[some])), 50.0) == [] and s._resync
+    s.mirror._records.pop(seq)
+    assert s.receive(encode(Ack(seq=seq, t=1.0, rejected=[some])), 50.0) == [] and s.mirror.resync
     p.tour()
     assert s.resyncs == 1 and s.mirror_mismatch == 0 and p.acked[-1][1]
     p.check_totals()
@@ -284,7 +284,7 @@ def test_tree_groups_and_models_stream_with_the_mixed_solver(denhaag):
     assert drawn and set(cache.groups) <= drawn and cache.groups
     assert all(cache.groups[r].instances > 0 for r in cache.groups)
     assert cache.rejected == [] and s.mirror_mismatch == 0 and s.mirror_checks == len(p.deltas)
-    assert p.acked[-1][1] and s._resident[list(cache.groups)].all()  # tree groups are in the mirror
+    assert p.acked[-1][1] and s.mirror.resident[list(cache.groups)].all()  # tree groups are in the mirror
     p.check_totals()
 
 

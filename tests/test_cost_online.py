@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from server.select.cost import ALGORITHM_SCALE
-from server.select.cost_online import LEAST_SLACK, MODELS, OnlineCostModel, RobustRLS, _frame
+from server.select.cost_online import LEAST_SLACK, MODELS, OnlineCostModel, _frame
+from server.select.rls import RobustRLS
 
 R = 3
 

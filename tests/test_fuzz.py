@@ -20,7 +20,6 @@ import time
 import zlib
 from collections import Counter
 from dataclasses import dataclass, field
-from types import SimpleNamespace
 
 import httpx
 import msgpack
@@ -328,7 +327,7 @@ def _camera_frame(scenes, t: float, dx: float = 0.0) -> bytes:
 
 
 def _active_session(scenes, sid: str, **hello) -> Session:
-    s = Session(scenes, sid, SessionConfig())
+    s = Session(scenes, sid, SessionConfig(), stopwatch=time.perf_counter)
     welcome, ping = s.receive(_hello_frame(scenes, **hello), 0.0)
     assert isinstance(welcome, Welcome) and isinstance(ping, Ping)
     assert s.receive(encode(Pong(id=ping.id, sent=ping.sent, t=0.0)), 0.0) == []
@@ -391,7 +390,7 @@ def run_campaign(scenes, frames: int, seed: int) -> Campaign:
     camp = Campaign()
     n_reps = int(index.n_representations)
     # The hostile sessions: one waiting for its hello, and two that said one (different options).
-    fresh = Session(scenes, "fresh", SessionConfig())
+    fresh = Session(scenes, "fresh", SessionConfig(), stopwatch=time.perf_counter)
     active = [_active_session(scenes, "hostile-a"),
               _active_session(scenes, "hostile-b", predict=False, morph=False, algorithms=["flat", "lit", "textured"])]
     for s in active:
@@ -436,7 +435,7 @@ def run_campaign(scenes, frames: int, seed: int) -> Campaign:
             camp.hellos_accepted += fresh.hello is not seen_hello
             seen_hello = fresh.hello
             if i - renewed >= 100:  # a hostile hello got through: have one waiting again (not too often: cost)
-                fresh, renewed = Session(scenes, f"fresh-{i}", SessionConfig()), i
+                fresh, renewed = Session(scenes, f"fresh-{i}", SessionConfig(), stopwatch=time.perf_counter), i
         # 3. The hostile sessions' own selections, now and then (they run what the hostile input left).
         if i % 500 == 499:
             for s in active:
@@ -506,7 +505,7 @@ def test_hostile_sessions_selections_never_raise(campaign):
 
 def test_error_sentences_fit_an_error_frame_whatever_the_keys(scenes):
     """A 5000-character unknown key once made the error sentence too long for ``Error`` (receive raised)."""
-    s = Session(scenes, "long-keys")
+    s = Session(scenes, "long-keys", stopwatch=time.perf_counter)
     for key in ("k" * 5000, b"k" * 5000, "é" * 3000):
         frame = msgpack.packb({"type": "pong", "id": 1, "sent": 0.0, "t": 0.0, key: 1}, use_bin_type=True)
         (err,) = s.receive(frame, 0.0)
@@ -530,7 +529,7 @@ def test_hostile_clock_stamps_do_not_break_selection(scenes, hostile):
     Found by the campaign: ``poll`` raised a pydantic ValidationError building
     the Delta (t0 > 1e9), on every poll after — a spinning session on the server.
     """
-    s = Session(scenes, "stamps", SessionConfig())
+    s = Session(scenes, "stamps", SessionConfig(), stopwatch=time.perf_counter)
     s.receive(_hello_frame(scenes), 0.0)
     out = s.receive(hostile(scenes), 0.01)
     assert all(isinstance(m, SERVER_CLASSES) for m in out)
@@ -608,22 +607,24 @@ def _tour_pose(index, u: float) -> dict:
     return out
 
 
-def test_a_good_session_is_unaffected_by_a_hostile_one_beside_it(scenes, monkeypatch):
+def test_a_good_session_is_unaffected_by_a_hostile_one_beside_it(scenes):
     """The same script into a session beside a hostile one and into a control: identical deltas.
 
     A selection's wall time feeds the session's lead estimate and its anytime
     solver's deadline, so on a loaded machine two runs of one script differ;
-    the sessions' selection stopwatch is made a step counter here (1 ms a
-    reading) so that any difference left is the hostile session's doing.
+    the sessions' selection stopwatch is a step counter here (1 ms a reading)
+    so that any difference left is the hostile session's doing.
     """
-    import server.session as session_module
+    def stopwatch():
+        ticks = iter(range(1 << 62))
+        return lambda: next(ticks) * 1e-3
 
-    ticks = iter(range(1 << 62))
-    monkeypatch.setattr(session_module, "time", SimpleNamespace(perf_counter=lambda: next(ticks) * 1e-3))
     index = next(iter(scenes.values())).index
     fuzz = Fuzzer(seed_messages(index), SEED + 1)
-    good, control = Session(scenes, "good", SessionConfig()), Session(scenes, "control", SessionConfig())
-    hostile = [Session(scenes, "hostile-fresh", SessionConfig()), _active_session(scenes, "hostile")]
+    good = Session(scenes, "good", SessionConfig(), stopwatch=stopwatch())
+    control = Session(scenes, "control", SessionConfig(), stopwatch=stopwatch())
+    hostile = [Session(scenes, "hostile-fresh", SessionConfig(), stopwatch=stopwatch()),
+               _active_session(scenes, "hostile")]
     clients = {good: _Client(scenes), control: _Client(scenes)}
     fed = 0
 

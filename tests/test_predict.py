@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from server.select.camera import View, cull_boxes, frustum_planes
-from server.select.predict import Limits, Pose, Predictor, conservative_camera
+from server.select.predict import MotionLimits, Pose, Predictor, conservative_camera
 
 RATE = 20.0
 UP = np.array([0.0, 0.0, 1.0])
@@ -164,7 +164,7 @@ def test_duplicated_and_reordered_samples_predict_as_the_ordered_stream(seed, de
 
 
 def test_duplicate_time_keeps_the_last_received():
-    p = Predictor(Limits(speed=50.0))  # no clamp: the first samples have not shown θ yet
+    p = Predictor(MotionLimits(speed=50.0))  # no clamp: the first samples have not shown θ yet
     p.add(0.0, [0, 0, 0], X, UP)
     p.add(0.05, [1, 0, 0], X, UP)
     p.add(0.05, [0.25, 0, 0], X, UP)
@@ -225,7 +225,7 @@ def test_a_fast_but_possible_turn_is_no_teleport():
 
 
 def test_teleport_with_a_speed_limit():
-    p = Predictor(Limits(speed=2.0))
+    p = Predictor(MotionLimits(speed=2.0))
     p.add(0.0, [0, 0, 0], X, UP)
     assert p.add(0.5, [7.9, 0, 0], X, UP) is False  # under 3·2·0.5 + 5 = 8 m
     assert p.add(1.0, [16.0, 0, 0], X, UP) is True
@@ -246,7 +246,7 @@ def test_speed_clamped_to_limits():
     t = times(2.0)
     w = math.radians(90.0)
     f = np.stack([np.cos(w * t), np.sin(w * t), np.zeros_like(t)], axis=1)
-    p = Predictor(Limits(speed=2.0, turn=math.radians(30.0)))
+    p = Predictor(MotionLimits(speed=2.0, turn=math.radians(30.0)))
     feed(p, t, straight(t, v=(10.0, 0.0, 0.0)), f)
     assert p.theta == 2.0 and p.omega == pytest.approx(math.radians(30.0))
     now, later = p.pose(t[-1]), p.pose(t[-1] + 1.0)
@@ -291,7 +291,7 @@ def test_bad_input():
     with pytest.raises(ValueError):
         Predictor(window=0.0)
     with pytest.raises(ValueError):
-        Limits(speed=-1.0)
+        MotionLimits(speed=-1.0)
     assert p.latest is None
     p.add(0.0, [0, 0, 0], X, X)  # an up along forward gets some perpendicular
     q = p.pose(1.0)
@@ -467,7 +467,7 @@ def test_a_fast_tour_is_not_a_string_of_teleports() -> None:
     assert tour_speed(keys[:1]) == 0.0 and tour_speed([]) == 0.0
 
     def resets(teleport: float) -> int:
-        p = Predictor(Limits(), teleport_speed=teleport)
+        p = Predictor(MotionLimits(), teleport_speed=teleport)
         for k in keys:
             p.add(k["t"], k["eye"], k["forward"], k["up"])
         return p.resets

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from time import perf_counter
+
 import msgpack
 import numpy as np
 import pytest
@@ -36,7 +38,7 @@ def _wire(out):
 
 
 def _open(scenes, config=None, **hello) -> Session:
-    s = Session(scenes, "s1", config)
+    s = Session(scenes, "s1", config, stopwatch=perf_counter)
     welcome, ping = _wire(s.receive(_hello(scenes, **hello), now=0.0))
     assert isinstance(welcome, Welcome) and welcome.session == "s1" and len(welcome.tour) >= 2
     assert isinstance(ping, Ping) and ping.sent == 0.0
@@ -134,7 +136,7 @@ def test_malformed_frames_get_error_frames_and_change_nothing(scenes):
     [({"scene": "nowhere"}, "unknown_scene"), ({"protocol": 99}, "version"), ({"solver": "magic"}, "unknown_solver")],
 )
 def test_bad_hello_is_refused_and_may_be_retried(scenes, fields, code):
-    s = Session(scenes, "s2")
+    s = Session(scenes, "s2", stopwatch=perf_counter)
     (err,) = s.receive(_hello(scenes, **fields), 0.0)
     assert isinstance(err, Error) and err.code == code and s.state is SessionState.AWAIT_HELLO
     (err,) = s.receive(_camera(scenes), 0.0)
@@ -161,7 +163,7 @@ def test_cache_mirror_evicts_under_pressure_and_keeps_to_the_budget(scenes):
         dropped += len(delta.drop)
         assert int(index.rep_bytes[sorted(held)].sum()) <= small  # the client never gets more than its budget
         unsent += len(set(delta.selection) - held)
-        assert held == set(np.nonzero(s._resident)[0].tolist())  # the mirror agrees with the client
+        assert held == set(np.nonzero(s.mirror.resident)[0].tolist())  # the mirror agrees with the client
     assert dropped > 0
     # A working set larger than the budget is cut, and the cut is counted, not hidden.
     assert s.stats["over_budget"] >= unsent > 0
@@ -198,7 +200,7 @@ def test_any_sequence_of_frames_keeps_the_session_sound(scenes, frames, gaps):
         out = s.receive(data, now) + s.poll(now)
         for m in _wire(out):  # every answer is a valid frame
             if isinstance(m, Delta):
-                assert set(m.selection) <= set(np.nonzero(s._resident)[0].tolist())
+                assert set(m.selection) <= set(np.nonzero(s.mirror.resident)[0].tolist())
                 assert m.predicted_cost <= m.budget * (1 + 1e-9)
     assert s.state is SessionState.ACTIVE
     assert np.isfinite(s.cost.c_vertex) and s.cost.c_vertex > 0
@@ -208,7 +210,7 @@ def test_bad_pongs_and_acks_get_error_frames_and_harm_nothing(scenes):
     s = _open(scenes)
     s.receive(_camera(scenes), now=0.0)
     (first,) = _deltas(s.poll(0.0))
-    resident = s._resident.copy()
+    resident = s.mirror.resident.copy()
     offset, rtt = s.clock.offset, s.clock.rtt
     bad = [
         msgpack.packb({"type": "pong", "id": 1, "sent": float("nan"), "t": 0.0}),
@@ -225,11 +227,11 @@ def test_bad_pongs_and_acks_get_error_frames_and_harm_nothing(scenes):
     from proto.messages import Ack
 
     assert s.receive(encode(Ack(seq=77, t=0.2, rejected=[10**9])), now=0.2) == []
-    assert (s._resident == resident).all() and s.clock.offset == offset and s.clock.rtt == rtt
+    assert (s.mirror.resident == resident).all() and s.clock.offset == offset and s.clock.rtt == rtt
     # A real refusal unmarks the rep in the mirror, so it is sent again when next needed.
     refused = first.add[0].rep
     s.receive(encode(Ack(seq=first.seq, t=0.1, rejected=[refused])), now=0.1)
-    assert not s._resident[refused] and s.stats["errors"] == len(bad) and s.state is SessionState.ACTIVE
+    assert not s.mirror.resident[refused] and s.stats["errors"] == len(bad) and s.state is SessionState.ACTIVE
 
 
 # ----------------------------------------------------------------------------- protocol 3's new fields
@@ -247,7 +249,7 @@ def _raw_hello(scenes, **kw) -> bytes:
     ({"cache_bytes": "lots"}, "cache_bytes"),
 ])
 def test_a_bad_hello_of_protocol_3_is_refused_by_name(scenes, bad, field):
-    s = Session(scenes, "s1")
+    s = Session(scenes, "s1", stopwatch=perf_counter)
     (err,) = _wire(s.receive(_raw_hello(scenes, **bad), now=0.0))
     assert isinstance(err, Error) and err.code == "invalid" and field in err.message
     assert s.state is SessionState.AWAIT_HELLO  # nothing opened; a good hello still works

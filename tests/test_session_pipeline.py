@@ -12,6 +12,7 @@ finer level — within the budget at every instant.
 from __future__ import annotations
 
 import heapq
+from time import perf_counter
 
 import numpy as np
 import pytest
@@ -39,7 +40,7 @@ class Link:
     """A session and a simulated client joined by a link with a fixed one-way delay."""
 
     def __init__(self, scenes, *, one_way=0.02, config=None, predict=True, morph=True, poses=None, budget=0.05):
-        self.session = Session(scenes, "sim", config or SessionConfig())
+        self.session = Session(scenes, "sim", config or SessionConfig(), stopwatch=perf_counter)
         self.index = next(iter(scenes.values())).index
         self.one_way = one_way
         self.events: list = []  # (arrival server time, order, "server" | "client", bytes)

@@ -6,6 +6,8 @@ hierarchical and mixed solvers see real hierarchies and vegetation.
 
 from __future__ import annotations
 
+from time import perf_counter
+
 import numpy as np
 import pytest
 
@@ -29,7 +31,7 @@ def city(denhaag_store):
 
 
 def _session(city, solver: str, budget: float = 0.02) -> Session:
-    s = Session(city, f"s-{solver}")
+    s = Session(city, f"s-{solver}", stopwatch=perf_counter)
     hello = Hello(protocol=PROTOCOL_VERSION, scene=next(iter(city)), viewport=[640, 360], fov_y=60.0,
                   target_frame_time=budget, solver=solver)
     welcome, ping = [decode_server(encode(m)) for m in s.receive(encode(hello), 0.0)]

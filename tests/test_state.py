@@ -29,7 +29,7 @@ from proto.messages import (Ack, AlgorithmTerms, Camera, Delta, Error, FrameRepo
                             Welcome)
 from server.scene.store import SceneStore
 from server.session import Session, SessionConfig, SessionState
-from server.state import (MemoryStateStore, RedisStateStore, StateStoreError, cost_state, open_state_store,
+from server.state import (MemoryStateStore, RedisStateStore, StateStoreError, open_state_store,
                           unpack_snapshot)
 
 STEP = 0.1  # seconds between camera poses (the predictor keeps ~1 s of them)
@@ -112,7 +112,7 @@ class Client:
 
 
 def _drive(scenes, seconds=3.0, session_id="s1"):
-    session = Session(scenes, session_id, SessionConfig())
+    session = Session(scenes, session_id, SessionConfig(), stopwatch=time.perf_counter)
     client = Client(scenes)
     (welcome,) = client.handle(session, session.receive(encode(_hello(scenes)), 0.0))
     client.run(session, seconds)
@@ -128,21 +128,15 @@ def test_snapshot_restore_resume_continues_and_sends_nothing_held(denhaag):
     blob = s1.snapshot()
     assert not s1.dirty
     assert len(blob) < 32 * 1024, len(blob)  # kilobytes: the mirror as bitsets, arrays as raw bytes
-    took = []
-    for _ in range(5):
-        began = time.perf_counter()
-        s1.snapshot()
-        took.append(time.perf_counter() - began)
-    assert min(took) < 0.005, took  # typically ~0.3 ms; generous for a shared machine
     assert unpack_snapshot(blob)["v"] == 1
 
     # Another replica: a new Session with the same id and token, the snapshot restored before the hello.
-    s2 = Session(denhaag, s1.id, SessionConfig(), token=s1.token)
+    s2 = Session(denhaag, s1.id, SessionConfig(), token=s1.token, stopwatch=time.perf_counter)
     s2.restore(blob)
     assert s2.state is SessionState.AWAIT_HELLO and not s2.dirty
     assert s2.seq == s1.seq and (s2.acks, s2.frames, s2.bytes_sent) == (s1.acks, s1.frames, s1.bytes_sent)
-    assert s2._pixel_scale == s1._pixel_scale and s2.delivery.bandwidth == s1.delivery.bandwidth
-    assert cost_state(s2.cost) == cost_state(s1.cost)  # every coefficient, covariance and history
+    assert s2.pipeline.pixel_scale == s1.pipeline.pixel_scale and s2.delivery.bandwidth == s1.delivery.bandwidth
+    assert s2.cost.to_state() == s1.cost.to_state()  # every coefficient, covariance and history
     assert s2.cost.c_vertex == s1.cost.c_vertex and s2.cost.chosen == s1.cost.chosen
     for name, rung in s1.cost.rungs.items():
         np.testing.assert_array_equal(s2.cost.rungs[name].rls.theta, rung.rls.theta)
@@ -156,7 +150,7 @@ def test_snapshot_restore_resume_continues_and_sends_nothing_held(denhaag):
     (w2,) = client.handle(s2, s2.receive(encode(hello), client.t))
     assert isinstance(w2, Welcome) and w2.resumed and w2.token == s1.token and w2.session == s1.id
     assert w2.held == held.size
-    assert tuple(s2._held) == (held.size, client.cache.held_bytes, digest(held))
+    assert tuple(s2.mirror.held) == (held.size, client.cache.held_bytes, digest(held))
     # The camera history carried over (the new hello's limits are its own).
     p1, p2 = s1.predictor, s2.predictor
     assert len(p1._t) >= 3
@@ -177,15 +171,34 @@ def test_snapshot_restore_resume_continues_and_sends_nothing_held(denhaag):
     assert s2.mirror_mismatch == 0 and s2.mirror_checks == s1.mirror_checks + len(new)
 
 
+@pytest.mark.perf
+def test_a_snapshot_costs_little_more_than_packing_its_plain_data(denhaag):
+    """Snapshots are taken after acks on the serving path: gathering the parts' state must cost about what
+    msgpack takes to pack the same data as a plain dict (measured here, on the same machine, not a figure)."""
+    s1, _, _ = _drive(denhaag, session_id="perf")
+    plain = unpack_snapshot(s1.snapshot())
+
+    def fastest(f, n: int = 20) -> float:
+        took = []
+        for _ in range(n):
+            began = time.perf_counter()
+            f()
+            took.append(time.perf_counter() - began)
+        return min(took)
+
+    reference = fastest(lambda: msgpack.packb(plain, use_bin_type=True))
+    assert fastest(s1.snapshot) < 100 * reference
+
+
 def test_resume_without_held_uses_the_snapshot_mirror(denhaag):
     s1, client, _ = _drive(denhaag, seconds=2.0, session_id="s3")
     blob = s1.snapshot()
-    s2 = Session(denhaag, s1.id, token=s1.token)
+    s2 = Session(denhaag, s1.id, token=s1.token, stopwatch=time.perf_counter)
     s2.restore(blob)
     (w,) = client.handle(s2, s2.receive(encode(_hello(denhaag, resume=Resume(session=s1.id, token=s1.token))),
                                          client.t))
     assert w.resumed and w.held == client.cache.held
-    np.testing.assert_array_equal(s2._resident, s1._resident)
+    np.testing.assert_array_equal(s2.mirror.resident, s1.mirror.resident)
     n = len(client.deltas)
     client.run(s2, 1.0)
     assert len(client.deltas) > n and client.sent_again == [] and s2.mirror_mismatch == 0
@@ -197,7 +210,7 @@ def test_a_fresh_session_with_held_sends_none_of_it(denhaag):
     pose_t = client.t
 
     def first_delta(hello_kw) -> tuple[Welcome, Delta]:
-        s = Session(denhaag, "fresh", SessionConfig())
+        s = Session(denhaag, "fresh", SessionConfig(), stopwatch=time.perf_counter)
         c = Client(denhaag, cache=None)
         c.t = pose_t - STEP
         (w,) = c.handle(s, s.receive(encode(_hello(denhaag, **hello_kw)), 0.0))
@@ -217,7 +230,7 @@ def test_bad_held_is_refused_and_the_session_goes_on(denhaag):
     bomb = zlib.compress(b"\xff" * (4 << 20), 9)
     assert len(bomb) < 48 * 1024
     for bad in (b"not zlib at all", bomb, pack_held(np.array([n])), zlib.compress(b"\x01")[:-3]):
-        s = Session(denhaag, "bad")
+        s = Session(denhaag, "bad", stopwatch=time.perf_counter)
         out = s.receive(encode(_hello(denhaag, held=bad)), 0.0)
         assert [type(m) for m in out] == [Error] and out[0].code == "bad_held", out
         assert s.state is SessionState.AWAIT_HELLO and s.hello is None and s.errors == 1
@@ -227,7 +240,7 @@ def test_bad_held_is_refused_and_the_session_goes_on(denhaag):
 
 def test_bad_held_on_a_resume_keeps_the_restored_state(denhaag):
     s1, client, _ = _drive(denhaag, seconds=1.5, session_id="s5")
-    s2 = Session(denhaag, s1.id, token=s1.token)
+    s2 = Session(denhaag, s1.id, token=s1.token, stopwatch=time.perf_counter)
     s2.restore(s1.snapshot())
     resume = Resume(session=s1.id, token=s1.token)
     out = s2.receive(encode(_hello(denhaag, resume=resume, held=b"garbage")), client.t)
@@ -240,7 +253,7 @@ def test_a_hello_that_does_not_resume_starts_afresh(denhaag):
     s1, _, _ = _drive(denhaag, seconds=1.0, session_id="s6")
     blob = s1.snapshot()
     for resume in (None, Resume(session=s1.id, token="x" * 32)):
-        s2 = Session(denhaag, s1.id, token=s1.token)
+        s2 = Session(denhaag, s1.id, token=s1.token, stopwatch=time.perf_counter)
         s2.restore(blob)
         assert s2.seq == s1.seq
         w = s2.receive(encode(_hello(denhaag, resume=resume)), 0.0)[0]
@@ -266,30 +279,30 @@ def test_restore_refuses_garbage_and_foreign_blobs(denhaag, demo):
         variant(predictor={**state["predictor"], "_x": state["predictor"]["_t"]}),
     ]
     for b in bad:
-        s = Session(denhaag, s1.id, token=s1.token)
+        s = Session(denhaag, s1.id, token=s1.token, stopwatch=time.perf_counter)
         with pytest.raises(ValueError):
             s.restore(b)
         assert s.seq == 0 and s.cost.frames == 0 and s._restored is None  # untouched
     with pytest.raises(ValueError, match="not served"):
-        Session(demo, s1.id).restore(blob)
+        Session(demo, s1.id, stopwatch=time.perf_counter).restore(blob)
 
 
 def test_the_snapshot_format_holds_zach_cost_models_too(denhaag):
     config = SessionConfig(cost_model="zach")
-    s1 = Session(denhaag, "z", config)
+    s1 = Session(denhaag, "z", config, stopwatch=time.perf_counter)
     client = Client(denhaag)
     client.handle(s1, s1.receive(encode(_hello(denhaag)), 0.0))
     client.run(s1, 1.0)
     assert s1.cost.updates > 0
-    s2 = Session(denhaag, "z", config, token=s1.token)
+    s2 = Session(denhaag, "z", config, token=s1.token, stopwatch=time.perf_counter)
     s2.restore(s1.snapshot())
     assert s2.cost.c_vertex == s1.cost.c_vertex and s2.cost.updates == s1.cost.updates
     with pytest.raises(ValueError, match="zach"):
-        Session(denhaag, "z", SessionConfig(), token=s1.token).restore(s1.snapshot())
+        Session(denhaag, "z", SessionConfig(), token=s1.token, stopwatch=time.perf_counter).restore(s1.snapshot())
 
 
 def test_dirty_follows_what_is_worth_saving(denhaag):
-    s = Session(denhaag, "d")
+    s = Session(denhaag, "d", stopwatch=time.perf_counter)
     assert not s.dirty
     with pytest.raises(RuntimeError):
         s.snapshot()
@@ -311,13 +324,13 @@ def test_the_mirror_after_hello_is_the_held_set(demo, data):
     n = int(index.n_representations)
     ids = np.asarray(sorted(data.draw(st.sets(st.integers(0, n - 1), max_size=n))), np.int64)
     cache_bytes = data.draw(st.sampled_from([None, 1 << 16]))  # a budget smaller than the set: kept anyway
-    s = Session(demo, "h")
+    s = Session(demo, "h", stopwatch=time.perf_counter)
     w = s.receive(encode(_hello(demo, held=pack_held(ids), cache_bytes=cache_bytes)), 0.0)[0]
     rep_bytes = np.asarray(index.rep_bytes, np.int64)
     assert isinstance(w, Welcome) and w.held == ids.size
-    np.testing.assert_array_equal(np.flatnonzero(s._resident), ids)
-    np.testing.assert_array_equal(np.flatnonzero(s._sent), ids)
-    assert tuple(s._held) == (ids.size, int(rep_bytes[ids].sum()), digest(ids))
+    np.testing.assert_array_equal(np.flatnonzero(s.mirror.resident), ids)
+    np.testing.assert_array_equal(np.flatnonzero(s.mirror.sent), ids)
+    assert tuple(s.mirror.held) == (ids.size, int(rep_bytes[ids].sum()), digest(ids))
 
 
 # ----------------------------------------------------------------------------- stores
@@ -409,7 +422,7 @@ def test_redis_store_resumes_a_session_across_replicas(redis_url, denhaag):
 
     token, blob = asyncio.run(go())
     assert token == s1.token
-    s2 = Session(denhaag, s1.id, token=token)
+    s2 = Session(denhaag, s1.id, token=token, stopwatch=time.perf_counter)
     s2.restore(blob)
     hello = _hello(denhaag, resume=Resume(session=s1.id, token=token), held=pack_held(_held_ids(client.cache)))
     (w,) = client.handle(s2, s2.receive(encode(hello), client.t))

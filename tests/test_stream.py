@@ -3,6 +3,8 @@ counts only on what the client holds or will hold — the rest is drawn with its
 
 from __future__ import annotations
 
+from time import perf_counter
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -14,7 +16,7 @@ from proto.codec import decode_server, encode
 from proto.messages import Ack, Camera, Delta, Hello, Pong
 from server.scene.store import SceneStore
 from server.session import Session, SessionConfig
-from server.stream import gate, realise_bytes, resident_fallback
+from server.session.gate import gate, realise_bytes, resident_fallback
 
 
 # --------------------------------------------------------------------------- pure parts
@@ -86,7 +88,7 @@ def denhaag(denhaag_store):
 def _drive(scenes, rate: float, *, guess: float, keys: int = 40):
     """A session whose acks come back as a link of ``rate`` bytes/s would deliver; the real client cache
     applies every delta. Returns the session, the deltas, and per delta (budget, new bytes, largest add)."""
-    s = Session(scenes, "link", SessionConfig(bandwidth=guess))
+    s = Session(scenes, "link", SessionConfig(bandwidth=guess), stopwatch=perf_counter)
     index = next(iter(scenes.values())).index
     s.receive(encode(Hello(protocol=PROTOCOL_VERSION, scene=index.name, viewport=[640, 360],
                            target_frame_time=0.05, predict=False)), 0.0)

@@ -20,15 +20,69 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from scipy.optimize import nnls
 
-__all__ = ["CostModel", "ALGORITHM_SCALE"]
+from .snapshot import dump_fields, load_fields
+
+__all__ = ["CostModel", "FrameCostModel", "FrameTerms", "ALGORITHM_SCALE"]
 
 #: Default C2 per rendering algorithm relative to c_vertex (flat, lit, textured): guesses
 #: until ``fit`` measures them; lighting and texturing cost a little more per vertex.
 ALGORITHM_SCALE = (1.0, 1.25, 1.5)
+
+
+#: What a frame report says was drawn per rendering algorithm: (R,) triangles, vertices, pixels, draws.
+FrameTerms = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+@runtime_checkable
+class FrameCostModel(Protocol):
+    """What a session asks of a cost model: fold in measured frames, price a selection, be saved and restored.
+
+    ``CostModel`` (Zach's running c_vertex) and ``cost_online.OnlineCostModel``
+    (F&S's terms fitted online) both implement it; the selection itself reads
+    ``predict`` / ``predict_terms`` / ``splat_cost`` (``selection``).
+    """
+
+    #: Frames shorter than this (measured and predicted) are light: the session sets a share of its target.
+    tail_min_time: float
+
+    @property
+    def c_vertex(self) -> float: ...
+
+    @property
+    def updates(self) -> int: ...
+
+    @property
+    def overhead(self) -> float:
+        """Fixed seconds per frame, spent whatever is drawn."""
+        ...
+
+    @property
+    def chosen(self) -> str:
+        """The name of the model in force."""
+        ...
+
+    def predict(self, vertices) -> np.ndarray: ...
+
+    def observe_frame(self, time: float, vertices: int, terms: FrameTerms | None = None, splats: int = 0) -> bool:
+        """Fold in one measured frame (its per-algorithm ``terms`` when the client reported them)."""
+        ...
+
+    def tail_ratio(self, q: float = 0.95) -> float:
+        """The budget's divisor that makes the q-th percentile frame, not the mean one, meet the target."""
+        ...
+
+    def report(self) -> dict | None:
+        """Which model is in force and why, with its coefficients; None for a model of one coefficient."""
+        ...
+
+    def to_state(self) -> dict: ...
+
+    def from_state(self, state) -> None: ...
 
 
 def _coeffs(value, r: int, name: str) -> np.ndarray:
@@ -44,12 +98,13 @@ def _coeffs(value, r: int, name: str) -> np.ndarray:
 class CostModel:
     """Seconds to draw, as the online c_vertex (Zach) and as F&S's per-algorithm terms.
 
-    c_vertex : initial guess, seconds per vertex (llvmpipe on two cores: ~1.5e-7)
+    c_vertex : initial guess, seconds per vertex
     alpha    : weight of the newest measurement in the running average
     min_vertices : frames drawing fewer vertices than this say little about c_vertex
     c_poly, c_vert, c_pixel : (R,) C1, C2, C3 per rendering algorithm. ``c_vert`` None means
         c_vertex · ALGORITHM_SCALE[r], following the online feedback until ``fit`` sets it.
     c_draw : C0, seconds per draw call
+    tail_min_time : ``FrameCostModel``'s; Zach's average has no tail to leave light frames out of
     """
 
     c_vertex: float = 2.0e-7
@@ -62,6 +117,7 @@ class CostModel:
     c_pixel: np.ndarray | None = None
     c_draw: float = 0.0
     fitted: dict = field(default_factory=dict)
+    tail_min_time: float = 0.0
 
     def __post_init__(self) -> None:
         r = self.algorithms
@@ -88,6 +144,42 @@ class CostModel:
         self.c_vertex += self.alpha * (measured - self.c_vertex)
         self.updates += 1
         return True
+
+    def observe_frame(self, time: float, vertices: int, terms: FrameTerms | None = None, splats: int = 0) -> bool:
+        """``FrameCostModel.observe_frame``: Zach's feedback reads the frame's time and vertices alone."""
+        return self.update(time, vertices)
+
+    def tail_ratio(self, q: float = 0.95) -> float:
+        """``FrameCostModel.tail_ratio``: the mean frame is budgeted, as Zach does."""
+        return 1.0
+
+    @property
+    def overhead(self) -> float:
+        """``FrameCostModel.overhead``: absorbed into c_vertex."""
+        return 0.0
+
+    @property
+    def chosen(self) -> str:
+        return "zach"
+
+    def report(self) -> dict | None:
+        return None
+
+    #: The fields a snapshot holds.
+    STATE = ("c_vertex", "alpha", "min_vertices", "updates", "algorithms", "c_poly", "c_vert", "c_pixel", "c_draw",
+             "fitted")
+
+    def to_state(self) -> dict:
+        """Every coefficient as plain data (``from_state`` reads it back)."""
+        return {"kind": "zach", **dump_fields(self, self.STATE)}
+
+    def from_state(self, state) -> None:
+        """Take in ``to_state``'s data; ValueError (model unchanged) if it is of another kind or does not fit."""
+        if not isinstance(state, dict):
+            raise ValueError("cost: expected a map")
+        if state.get("kind") != "zach":
+            raise ValueError(f"cost: the snapshot's model is {state.get('kind')!r}, this server's 'zach'")
+        load_fields(self, state, self.STATE, "cost")
 
     # ------------------------------------------------------------------ F&S: max of terms
 

@@ -20,12 +20,15 @@ a clock or does I/O.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Limits", "Pose", "Predictor", "conservative_camera", "tour_speed"]
+from .snapshot import dump_fields, load_fields
+
+__all__ = ["MotionLimits", "Pose", "Predictor", "conservative_camera", "tour_speed"]
 
 #: Residuals past HUBER × the median residual (per eye / forward / up) are downweighted.
 HUBER = 2.5
@@ -64,7 +67,7 @@ def tour_speed(tour) -> float:
 
 
 @dataclass(frozen=True)
-class Limits:
+class MotionLimits:
     """Navigation limits: max translational speed θ (m/s) and max angular speed ω (rad/s); None = use the maxima observed."""
 
     speed: float | None = None
@@ -74,7 +77,7 @@ class Limits:
         for name in ("speed", "turn"):
             v = getattr(self, name)
             if v is not None and not (math.isfinite(v) and v > 0):
-                raise ValueError(f"Limits.{name} must be a positive finite number or None, got {v!r}")
+                raise ValueError(f"MotionLimits.{name} must be a positive finite number or None, got {v!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,7 +188,7 @@ class Predictor:
 
     def __init__(
         self,
-        limits: Limits = Limits(),
+        limits: MotionLimits = MotionLimits(),
         *,
         window: float = 1.0,
         gap: float = 0.5,
@@ -273,12 +276,31 @@ class Predictor:
         keep = self._t >= self._t[-1] - self.window
         keep[-2:] = True
         self._t, self._x = self._t[keep], self._x[keep]
-        # The fit costs ~0.7 ms; poses come at 10–60 Hz and predictions are asked for once per τ: fit lazily,
-        # but at least every REFIT_EVERY seconds of samples so the fastest motion seen (θ, ω) is still tracked.
+        # Poses come many times per τ and predictions are asked for once per τ: fit lazily, but at least
+        # every REFIT_EVERY seconds of samples so the fastest motion seen (θ, ω) is still tracked.
         self._stale = True
         if t >= self._fit_t + REFIT_EVERY:
             self._fit()
         return False
+
+    # ------------------------------------------------------------------ snapshot
+
+    #: The fields a snapshot holds: the recent poses, their fit and the motion seen; the limits stay the owner's.
+    STATE = ("window", "gap", "half_life", "teleport_speed", "teleport_turn", "min_speed", "min_turn", "resets",
+             "_t", "_x", "_floor", "_a", "_b", "_speed_seen", "_turn_seen")
+
+    def to_state(self) -> dict:
+        """The history and its fit as plain data (``from_state`` reads it back)."""
+        self._fit()  # the fit is lazy: bring it up to the poses held
+        return dump_fields(self, self.STATE)
+
+    def from_state(self, state) -> None:
+        """Take in ``to_state``'s data; ValueError (predictor unchanged) if it does not fit."""
+        trial = copy.copy(self)
+        load_fields(trial, state, self.STATE, "predictor", variable=("_t", "_x"))
+        if trial._t.shape[0] != trial._x.shape[0] or (trial._t.size and np.any(np.diff(trial._t) < 0)):
+            raise ValueError("predictor: times and poses do not match")
+        self.__dict__.update(trial.__dict__)
 
     def _fit(self) -> None:
         if self._stale:

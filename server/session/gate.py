@@ -20,10 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .select.benefit import accuracy
-from .select.camera import screen_size
+from ..select.benefit import accuracy
+from ..select.camera import screen_size
 
-__all__ = ["Gate", "realise_bytes", "resident_fallback", "gain", "gate"]
+__all__ = ["Gate", "Gated", "realise_bytes", "resident_fallback", "gain", "gate", "through_gate"]
 
 
 def realise_bytes(reps: np.ndarray, previous: np.ndarray, rep_first: np.ndarray, rep_bytes: np.ndarray,
@@ -94,15 +94,15 @@ def gate(gains: np.ndarray, nbytes: np.ndarray, budget: float, at_least_one: boo
     if s == 0:
         return Gate(np.zeros(0, bool), np.zeros(0, np.int64), 0)
     req = np.full(s, -1, np.int64) if requires is None else np.asarray(requires, np.int64)
-    density = gains / np.maximum(nbytes, 1)
-    depth = (req >= 0).astype(np.int64)  # a stand-in before what builds on it, at equal density
-    order = np.lexsort((nbytes, depth, -density))
+    value = gains / np.maximum(nbytes, 1)  # benefit per byte, as the solvers' value is benefit per second
+    depth = (req >= 0).astype(np.int64)  # a stand-in before what builds on it, at equal value
+    order = np.lexsort((nbytes, depth, -value))
     sizes = nbytes[order]
     send = np.zeros(s, bool)
     prefix = order[np.cumsum(sizes) <= budget]
     send[prefix] = True
     left = budget - float(nbytes[send].sum())
-    for _ in range(6):  # vectorised fill rounds: what still fits, in density order, once its base is sent
+    for _ in range(6):  # vectorised fill rounds: what still fits, in value order, once its base is sent
         base_ok = (req < 0) | send[np.maximum(req, 0)]
         open_ = ~send[order] & (sizes <= left) & base_ok[order]
         if not open_.any():
@@ -118,3 +118,89 @@ def gate(gains: np.ndarray, nbytes: np.ndarray, budget: float, at_least_one: boo
     if at_least_one and not send.any():
         send[order[(req[order] < 0)][0] if (req < 0).any() else order[0]] = True
     return Gate(send, order, int(nbytes[send].sum()))
+
+
+@dataclass(frozen=True)
+class Gated:
+    """A selection as the link allows it.
+
+    reps, algorithm : (s',) the representations drawn (and their rendering algorithm, or None)
+    rank : (n_objects,) int64 — each object's place in the send order (best value first), or None when
+        nothing needed bytes
+    stats : the gate's figures for ``last_gate`` (budget, lacking, deferred, fallback, stand_in, bytes)
+    deferred, fallbacks : choices left unsent, and those of them drawn with a coarser resident level
+    """
+
+    reps: np.ndarray
+    algorithm: np.ndarray | None
+    rank: np.ndarray | None
+    stats: dict
+    deferred: int = 0
+    fallbacks: int = 0
+
+
+def through_gate(reps: np.ndarray, algorithm: np.ndarray | None, cam, table, resident: np.ndarray,
+                 previous: np.ndarray, budget: float, in_flight: int) -> Gated:
+    """The selection as the link allows it.
+
+    reps : (s,) int64 the selection; algorithm : (s,) its rendering algorithm, or None
+    cam : the view the benefit is measured in (``camera.View``)
+    table : the scene's ``SceneTable``; resident : (m,) bool what the client holds
+    previous : (n_objects,) int64 the rep each object drew in the last delta, −1 none
+    budget : bytes this delta's new geometry may take; in_flight : bytes still on their way
+
+    Each object whose choice needs bytes offers two increments over its best
+    resident ancestor: a coarse stand-in (the next level up from what is held)
+    and the full choice, merged into one where the full choice has the higher
+    value (F&S's concave hull). The gate sends those of highest value within the
+    byte budget; an object whose choice does not go is drawn with what it got,
+    or what it held, or not at all — never costlier than chosen.
+    """
+    lacking = ~resident[reps]
+    stats = {"budget": budget, "lacking": int(lacking.sum()), "deferred": 0, "fallback": 0, "stand_in": 0,
+             "bytes": 0}
+    if not lacking.any():
+        return Gated(reps, algorithm, None, stats)
+    idx = np.nonzero(lacking)[0]
+    r = reps[idx]
+    k = r.size
+    obj = table.rep_object[r]
+    first = table.rep_first_of[r]
+    prev = previous[obj]
+    fallback = resident_fallback(r, first, resident)
+    coarse = np.where(fallback >= 0, fallback + 1, first)  # the next level up from what is held
+    nb_full = realise_bytes(r, prev, first, table.rep_bytes, resident)
+    nb_coarse = realise_bytes(coarse, prev, first, table.rep_bytes, resident)
+    faces = table.rep_faces
+    held_faces = np.where(fallback >= 0, faces[np.maximum(fallback, 0)], 0)
+    lo, hi, clip = table.object_lo[obj], table.object_hi[obj], cam.matrix()
+    g_full = gain(lo, hi, clip, cam.width, cam.height, faces[r], held_faces)
+    g_coarse = gain(lo, hi, clip, cam.width, cam.height, faces[coarse], held_faces)
+    # Two increments where the stand-in is a real step of at least the full choice's value; else the full one.
+    two = (coarse < r) & (g_coarse * np.maximum(nb_full, 1) >= (g_full - g_coarse) * np.maximum(nb_coarse, 1))
+    n2 = int(two.sum())
+    gains = np.concatenate([np.where(two, g_full - g_coarse, g_full), g_coarse[two]])
+    sizes = np.concatenate([nb_full, nb_coarse[two]])
+    requires = np.full(k + n2, -1, np.int64)
+    requires[np.nonzero(two)[0]] = k + np.arange(n2)  # the full choice builds on its stand-in
+    decision = gate(gains, sizes, budget, at_least_one=in_flight == 0, requires=requires)
+    full_sent = decision.send[:k]
+    coarse_sent = np.zeros(k, bool)
+    coarse_sent[np.nonzero(two)[0]] = decision.send[k:]
+    shown = np.where(full_sent, r, np.where(coarse_sent, coarse, fallback))
+    # Send order, per object: by its first increment in the gate's value order.
+    pos = np.empty(k + n2, np.int64)
+    pos[decision.order] = np.arange(k + n2)
+    first_pos = pos[:k].copy()
+    first_pos[np.nonzero(two)[0]] = pos[k:]
+    rank = np.full(previous.size, k + n2, np.int64)
+    rank[obj] = first_pos
+    out = reps.copy()
+    out[idx] = shown
+    keep = out >= 0
+    held_back = ~full_sent
+    deferred, fallbacks = int(held_back.sum()), int((held_back & (shown >= 0)).sum())
+    stats.update(deferred=deferred, fallback=fallbacks, stand_in=int(coarse_sent[held_back].sum()),
+                 bytes=decision.bytes)
+    return Gated(out[keep], None if algorithm is None else np.asarray(algorithm)[keep], rank, stats,
+                 deferred, fallbacks)

@@ -1,0 +1,232 @@
+"""One selection of a session, from its cameras to the delta that carries it (Zach 2002, 3.4).
+
+The cameras of the interval (``timing``) and the cost model's budget go to
+the solver (``selection.select``), under the selection time limit of the
+session's injected stopwatch. The choice then passes the byte gate (``gate``:
+what the link carries in time), the morph scheduler times its transitions, the
+client-cache mirror (``mirror``) says what must be added and may be dropped, and
+the adds are read from the store in the gate's value order. The delta carries
+all of that, with the selection's compute time as the stopwatch measured it.
+
+What carries from one selection to the next lives here: the solver's memory,
+the morph schedulers, what each object drew last, and the session's estimates
+of covered pixels per box pixel and of morph-map bytes per geometry byte.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from proto.messages import ALGORITHMS, Delta, FrameReport, ModelAdd, Morphs, RepresentationAdd
+
+from ..clock import Delivery
+from ..select.cost import FrameCostModel
+from ..select.morph import MorphScheduler, mark
+from ..select.selection import Interval, Memory, select
+from ..select.snapshot import dump_fields, load_fields
+from ..select.solvers.candidates import NO_LIMIT, Limit
+from .gate import through_gate
+from .mirror import CacheMirror
+from .table import SceneTable
+
+__all__ = ["Pipeline"]
+
+
+class Pipeline:
+    """A session's selections: the state one carries to the next, and ``select`` that builds a delta."""
+
+    #: The fields a snapshot holds (among the session's fields), by their snapshot names.
+    STATE = {"_pixel_scale": "pixel_scale"}
+    #: ... and those that may come and go with the streaming code (a snapshot without them still loads).
+    OPTIONAL = {"deferred": "deferred", "fallbacks": "fallbacks"}
+
+    def __init__(self, config) -> None:
+        self.config = config
+        self.table: SceneTable | None = None
+        self.store = None
+        self.scene = None  # the solvers' views of the scene (``SceneTable.scene``)
+        self.algorithms: tuple = (0,)
+        self.memory = Memory()
+        self.morph = MorphScheduler(config.tau, morph=False)
+        self.ramp = MorphScheduler(config.tau, morph=False)
+        self.prev_rep = np.zeros(0, np.int64)  # the rep each object drew last delta, −1 none
+        self.drawn = np.zeros(0, np.int64)
+        self.pixel_scale = 1.0  # covered pixels per pixel of box screen area, measured
+        self.pixels_predicted: dict[int, float] = {}  # seq → box pixels its selection was priced with
+        self.morph_share = 0.1  # morph-map bytes per geometry byte sent, learned from the adds
+        self.last_stats: dict = {}
+        self.last_gate: dict = {}
+        self.last_tail = 1.0  # the budget's tail ratio at the last selection
+        self.deferred = 0  # choices that waited for bytes
+        self.fallbacks = 0  # ... and were drawn coarser meanwhile
+
+    def to_state(self) -> dict:
+        """{"fields": …, "optional": …}: the selection's figures a snapshot holds (among the session's fields)."""
+        return {"fields": dump_fields(self, self.STATE), "optional": dump_fields(self, self.OPTIONAL, optional=True)}
+
+    def from_state(self, fields, optional) -> None:
+        """Take in ``to_state``'s data; ValueError (pipeline unchanged) if it does not fit."""
+        saved = {attr: getattr(self, attr) for attr in (*self.STATE.values(), *self.OPTIONAL.values())}
+        try:
+            load_fields(self, fields, self.STATE, "session")
+            load_fields(self, optional, self.OPTIONAL, "session", optional=True)
+        except ValueError:
+            self.__dict__.update(saved)
+            raise
+
+    def start(self, table: SceneTable, store, hello) -> None:
+        """Set up for the scene and the options a hello named."""
+        self.table, self.store = table, store
+        self.scene = table.scene(self.config.importance)
+        self.algorithms = tuple(ALGORITHMS.index(a) for a in hello.algorithms)
+        self.memory = Memory()
+        self.morph = MorphScheduler(self.config.tau, morph=hello.morph)
+        self.ramp = MorphScheduler(self.config.tau, morph=hello.morph)
+        self.prev_rep = np.full(table.n_objects, -1, np.int64)
+        self.drawn = np.zeros(0, np.int64)
+
+    # ------------------------------------------------------------------ feedback
+
+    def observe_pixels(self, report: FrameReport) -> None:
+        """Fold a frame's covered pixels into the fill estimate: boxes overstate what a mesh covers (and
+        depth-tested overdraw understates nothing), so the ratio is learnt."""
+        predicted = self.pixels_predicted.get(report.selection, 0.0)
+        if report.pixels > 0 and predicted > 0:
+            ratio = float(np.clip(report.pixels / predicted, 0.02, 4.0))
+            self.pixel_scale += 0.1 * (ratio - self.pixel_scale)
+
+    # ------------------------------------------------------------------ one selection
+
+    def select(self, seq: int, now: float, hello, view, margin: float, t0: float, start: float, switch: float,
+               reset: bool, cost: FrameCostModel, mirror: CacheMirror, delivery: Delivery,
+               stopwatch: Callable[[], float] | None) -> tuple[Delta, int, float]:
+        """Delta ``seq`` for the cameras ``view`` (widened by ``margin`` degrees) over the interval from ``t0``,
+        its schedule running from ``start`` to ``switch``; returns (delta, payload bytes, compute seconds)."""
+        config, table = self.config, self.table
+        tau = config.tau
+        # The fitted model's fixed per-frame cost (clear, finish) is spent whatever is drawn. And the frame at
+        # the budget quantile, not the mean one, meets the target: the model's recent held-out measured ÷
+        # predicted ratio at that quantile shrinks what the selection may spend.
+        tail = cost.tail_ratio(config.budget_quantile) if config.budget_quantile > 0 else 1.0
+        self.last_tail = tail
+        budget = max(hello.target_frame_time / tail - cost.overhead, 0.25 * hello.target_frame_time)
+        # The only clock the selection sees: an anytime solver stops at select_limit with its best so far.
+        began = 0.0 if stopwatch is None else stopwatch()
+        limit = NO_LIMIT if stopwatch is None else Limit(stopwatch, began + config.select_limit)
+        choice = select(self.scene, view, cost, budget, hello.solver, margin,
+                        memory=self.memory, t=t0, limit=limit, factors=config.factors,
+                        algorithms=self.algorithms, pixel_scale=self.pixel_scale)
+        self.last_stats = dict(choice.stats)
+        self.pixels_predicted[seq] = choice.pixels
+        if len(self.pixels_predicted) > 64:
+            self.pixels_predicted.pop(min(self.pixels_predicted))
+        reps, algorithm, rank = self._gate(choice.reps, choice.algorithm, view, now, mirror, delivery)
+        level = table.rep_level[reps]
+        key = reps - level
+        kind, _ = mark(table.rep_parent, self.drawn, reps)
+        tr = self.morph.schedule(key, level.astype(np.float64), start, switch, reset=reset, kind=kind)
+        self.drawn = reps
+        self.prev_rep[:] = -1
+        self.prev_rep[table.rep_object[reps]] = reps
+        needed = _expand(tr.needed_key, tr.needed_lo, tr.needed_hi)
+        vegetation, resolution, ramps = [], [], Morphs()
+        drawn_groups = groups = np.zeros(0, np.int64)
+        if choice.x is not None and choice.x_reps is not None:
+            rt = self.ramp.schedule(choice.x_reps, choice.x, start, switch, reset=reset)
+            vegetation, resolution = choice.x_reps.tolist(), np.clip(choice.x, 0.0, 1.0).tolist()
+            ramps = Morphs(rep=rt.key.tolist(), level_from=np.clip(rt.level_from, 0, 1).tolist(),
+                           level_to=np.clip(rt.level_to, 0, 1).tolist(), t0=rt.t0.tolist(), t1=rt.t1.tolist())
+            # Tree groups drawn now, and those a ramp still draws from the window on, must be resident too.
+            drawn_groups = np.asarray(choice.x_reps, np.int64)[np.asarray(choice.x) > 0]
+            groups = np.union1d(drawn_groups, rt.needed_key[rt.needed_hi > 0]).astype(np.int64)
+        new, drop = mirror.plan(np.concatenate([reps, drawn_groups]), np.concatenate([needed, groups]), seq)
+        if new.size and rank is not None:
+            # Best benefit per byte first (a chain's intermediates with their target, coarse before fine).
+            order = rank[table.rep_object[new]]
+            new = new[np.lexsort((table.rep_level[new], order))]
+        add, models, nbytes = self._adds(new, mirror)
+        morphs = Morphs(
+            rep=(tr.key + tr.level_to.astype(np.int64)).tolist(), level_from=tr.level_from.tolist(),
+            level_to=tr.level_to.tolist(), t0=tr.t0.tolist(), t1=tr.t1.tolist(),
+        )
+        took = 0.0 if stopwatch is None else stopwatch() - began
+        self.last_stats.update(tr.stats)
+        delta = Delta(
+            seq=seq,
+            t0=float(switch),
+            t1=float(switch + tau),
+            start=float(start),
+            reset=reset,
+            add=add,
+            drop=drop.tolist(),
+            models=models,
+            selection=reps.tolist(),
+            algorithm=[] if algorithm is None else algorithm.tolist(),
+            budget=budget,
+            predicted_cost=choice.cost,
+            cost_coeff=cost.c_vertex,
+            compute=min(max(took, 0.0), 3600.0),
+            morphs=morphs,
+            vegetation=vegetation,
+            resolution=resolution,
+            ramps=ramps,
+        )
+        return delta, nbytes, took
+
+    def _gate(self, reps: np.ndarray, algorithm, view, now: float, mirror: CacheMirror, delivery: Delivery):
+        """The selection as the link allows it (``gate.through_gate``), with the send order per object: bytes
+        this delta's new representations may take are bandwidth × τ × link_share, less what is in flight."""
+        config = self.config
+        link = delivery.bandwidth * config.tau * config.link_share
+        in_flight = delivery.in_flight(now, max_age=max(4 * config.tau, 1.0))
+        left = max(link - in_flight, 0.0)
+        budget = left / (1.0 + self.morph_share)  # the gate counts geometry; morph maps ride along
+        cam = view.views[0] if isinstance(view, Interval) else view
+        gated = through_gate(reps, algorithm, cam, self.table, mirror.resident, self.prev_rep, budget, in_flight)
+        self.last_gate = {"link": left, "bandwidth": delivery.bandwidth, **gated.stats}
+        self.deferred += gated.deferred
+        self.fallbacks += gated.fallbacks
+        return gated.reps, gated.algorithm, gated.rank
+
+    def _adds(self, new: np.ndarray, mirror: CacheMirror) -> tuple[list[RepresentationAdd], list[ModelAdd], int]:
+        """The adds for ``new`` (meshes with their morph maps, tree groups' instance lists), the store's tree
+        models with the session's first tree group, and the payload bytes of both."""
+        store, table = self.store, self.table
+        index = store.index
+        blobs = store.geometries(new.tolist()) if new.size else []
+        trees = table.rep_trees[new]
+        morph_maps = [None] * new.size
+        if self.morph.morph and new.size:
+            with_map = new[table.rep_morph[new] & ~trees]
+            maps = dict(zip(with_map.tolist(), store.morphs(with_map.tolist()))) if with_map.size else {}
+            morph_maps = [maps.get(r) for r in new.tolist()]
+        add = [
+            RepresentationAdd(rep=int(r), object=int(table.rep_object[r]), level=int(table.rep_level[r]),
+                              geometry=blob, morph=mm, kind="trees" if t else "mesh")
+            for r, blob, mm, t in zip(new.tolist(), blobs, morph_maps, trees.tolist())
+        ]
+        models: list[ModelAdd] = []
+        if trees.any() and not mirror.models_sent:  # the groups' instances name these: sent once, kept
+            mirror.models_sent = True
+            n = int(index.model_points.shape[0])
+            models = [ModelAdd(model=i, points=b) for i, b in enumerate(store.model_geometries(range(n)))]
+        geometry = sum(len(b) for b in blobs)
+        maps = sum(len(m) for m in morph_maps if m)
+        nbytes = geometry + maps + sum(len(m.points) for m in models)
+        if geometry:  # what morph maps add to the geometry they come with, as this session sees it
+            self.morph_share += 0.3 * (maps / geometry - self.morph_share)
+        return add, models, nbytes
+
+
+def _expand(key: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Representation ids key + l for every whole level l in [floor(lo), ceil(hi)], per row."""
+    if key.size == 0:
+        return np.zeros(0, np.int64)
+    first = np.floor(lo + 1e-9).astype(np.int64)
+    count = np.ceil(hi - 1e-9).astype(np.int64) - first + 1
+    count = np.maximum(count, 1)
+    base = np.repeat(key + first, count)
+    step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    return np.unique(base + step)
