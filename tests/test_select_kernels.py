@@ -1,6 +1,6 @@
 """The selection's compiled kernels (projection, benefit) against the numpy reference they replace.
 
-A session's selection runs ``_view_kernels`` once numba is warm and the numpy
+A session's selection runs ``kernels.view`` once numba is warm and the numpy
 functions of ``camera`` and ``benefit`` before that (or with WALKSTREAM_NUMBA=0):
 both must give the same sizes, offsets, speeds and benefits (up to rounding), and
 so the same choices.
@@ -22,18 +22,16 @@ from server.select.benefit import BenefitFactors, benefit_matrix, importance
 from server.select.camera import View, centre_offset, cull_boxes, screen_size, screen_speed, widened
 from server.select.cost import CostModel
 from server.select.selection import Interval, Memory, Scene, select
-from server.select.solvers import greedy
+from server.select import kernels
 
 BOUNDS = np.array([[-60.0, -60.0, -5.0], [60.0, 60.0, 30.0]])
 
 
 @pytest.fixture(scope="module")
 def kern():
-    greedy.use_kernels(True)  # waits for the compile (or the cache)
-    from server.select import _view_kernels
-
-    yield _view_kernels
-    greedy.use_kernels(None)
+    kernels.use_kernels(True)  # waits for the compile (or the cache)
+    yield kernels.compiled().view
+    kernels.use_kernels(None)
 
 
 def _boxes(seed: int, n: int, dtype=np.float32):
@@ -188,13 +186,13 @@ def test_kernels_and_numpy_choose_alike_over_a_walk(kern, denhaag_store, solver,
         walk = _tour_views(index, 8)
         runs = []
         for compiled in (True, False):
-            greedy.use_kernels(compiled)
+            kernels.use_kernels(compiled)
             memory, choices = Memory(), []
             for i, view in enumerate(walk):
                 choices.append(select(scene, view, cost, 0.01, solver, 0.0, memory=memory, t=0.5 * i + 0.1,
                                       algorithms=algorithms))
             runs.append(choices)
-        greedy.use_kernels(True)
+        kernels.use_kernels(True)
     drawn = 0
     for a, b in zip(*runs):
         assert a.reps.tolist() == b.reps.tolist()

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import solvers
+from . import kernels, solvers
 from .benefit import BenefitFactors, benefit_matrix, original_faces, resolved_accuracy
 from .camera import View, centre_offset, cull_boxes, cull_hierarchy, screen_size, screen_speed, widened
 from .cost import CostModel
@@ -260,10 +260,9 @@ def _tuple_cost(cost_model, faces, vertices, pixels, algorithm):
 
 
 def _view_kernels():
-    """The compiled projection and benefit kernels once the solvers' kernels are warm, else None (numpy)."""
-    from .solvers import greedy
-
-    return greedy.view_kernels_now()
+    """The compiled culling, projection and benefit kernels once they are warm, else None (numpy)."""
+    ready = kernels.compiled()
+    return ready.view if ready is not None else None
 
 
 def _stack(cams):
@@ -554,7 +553,7 @@ def _smooth(scene, cams, cost_model):
     Benefit weight is the pixels a group covers (× importance, weighted over the
     cameras like a mesh's); its cost at full resolution is the cost model's price of all its points.
     """
-    from .solvers.mixed import Smooth
+    from .solvers.mixed_problem import Smooth
 
     veg = scene.vegetation
     if veg is None or veg.n == 0:
