@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 from scipy.optimize import minimize
 
 from server.select.solvers.candidates import Candidates, Limit
-from server.select.solvers.mixed import Smooth, solve
+from server.select.solvers.mixed import solve
+from server.select.solvers.mixed_problem import Smooth
 
 EMPTY = Candidates.of(np.zeros((0, 1)), np.zeros((0, 1)))
 
