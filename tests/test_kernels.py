@@ -86,7 +86,8 @@ def test_start_kernel_equals_the_numpy_start(inst, seed):
     np.testing.assert_array_equal(incremental.start(cand, hull), incremental.start_numpy(cand, hull))
     # The hull kernel finds the same start while it builds the hulls.
     if cand.n:
-        fused = greedy._hull_compiled(kernels.compiled(), cand, cap, scratch=True, previous=cand.previous.astype(np.int64))
+        fused = greedy._hull_compiled(kernels.compiled(), cand, cap, scratch=True,
+                                      previous=cand.previous.astype(np.int64))
         np.testing.assert_array_equal(fused.begin, incremental.start_numpy(cand, hull))
 
 
@@ -231,13 +232,13 @@ def test_fill_kernel_equals_the_numpy_fill():
 
 
 def test_an_expired_limit_stops_the_compiled_paths_too():
-    from server.select.solvers.candidates import Limit
+    from server.select.solvers.candidates import TimeLimit
 
     rng = np.random.default_rng(3)
     cand = tie_free(rng, 400, 4, concave=True)
     cand = Candidates.of(cand.benefit, cand.cost, previous=np.full(400, 3))
     budget = float(cand.cost[:, 1].sum())
-    expired = Limit(clock=lambda: 1.0, deadline=0.0)
+    expired = TimeLimit(clock=lambda: 1.0, deadline=0.0)
     r = incremental.solve(cand, budget, limit=expired)
     assert r.stats["stopped"] == "limit" and r.cost <= budget * (1 + 1e-12)
     assert r.benefit <= incremental.solve(cand, budget).benefit + 1e-9

@@ -13,7 +13,7 @@ from hypothesis.extra.numpy import arrays
 
 from server.select import solvers
 from server.select.solvers import baselines, exact, greedy, incremental
-from server.select.solvers.candidates import Candidates, Limit
+from server.select.solvers.candidates import Candidates, TimeLimit
 
 OPTIMISING = ["greedy", "optimization", "exact"]
 
@@ -60,10 +60,10 @@ def check_feasible(cand: Candidates, budget: float, r) -> None:
     assert r.stats["stopped"] in ("done", "limit")
 
 
-def fake_limit(after: int) -> Limit:
+def fake_limit(after: int) -> TimeLimit:
     """A limit whose clock expires after ``after`` checks (a counting clock, no time involved)."""
     ticks = itertools.count()
-    return Limit(clock=lambda: float(next(ticks)), deadline=float(after))
+    return TimeLimit(clock=lambda: float(next(ticks)), deadline=float(after))
 
 
 def with_previous(cand: Candidates, previous: np.ndarray) -> Candidates:

@@ -26,7 +26,7 @@ from . import kernels, solvers
 from .benefit import BenefitFactors, benefit_matrix, original_faces, resolved_accuracy
 from .camera import View, centre_offset, cull_boxes, cull_hierarchy, screen_size, screen_speed, widened
 from .cost import CostModel
-from .solvers.candidates import NO_LIMIT, Candidates, Limit
+from .solvers.candidates import NO_LIMIT, Candidates, TimeLimit
 
 __all__ = ["Levels", "Scene", "Memory", "Choice", "Interval", "select", "HIERARCHICAL", "MIXED"]
 
@@ -450,7 +450,7 @@ def select(
     memory: Memory | None = None,
     t: float | None = None,
     factors: BenefitFactors | None = None,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     algorithms: tuple = (0,),
     pixel_scale: float = 1.0,
 ) -> Choice:

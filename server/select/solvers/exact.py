@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import greedy
-from .candidates import NO_LIMIT, Candidates, Limit
+from .candidates import NO_LIMIT, Candidates, TimeLimit
 from .result import Result
 
 __all__ = ["solve", "upper_bound"]
@@ -45,7 +45,7 @@ def solve(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     mip_gap: float = 1e-6,
     time_limit: float | None = None,

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import kernels
-from .candidates import NO_LIMIT, Candidates, Limit
+from .candidates import NO_LIMIT, Candidates, TimeLimit
 from .result import Result
 
 __all__ = ["Hull", "upper_hull", "cut", "fill", "threshold", "solve", "upper_hull_numpy", "fill_numpy",
@@ -294,7 +294,7 @@ def _sorted_cut(value, weight, capacity, taken, base, idx):
     return taken
 
 
-def fill(hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_rounds: int):
+def fill(hull: Hull, steps: np.ndarray, remaining: float, limit: TimeLimit, max_rounds: int):
     """Rounds adding, in falling value, each object's next increment while it still fits.
 
     Returns (rounds, stopped); ``steps`` is updated in place. Only objects whose
@@ -307,7 +307,7 @@ def fill(hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_roun
     return _fill_compiled(k_, hull, steps, float(remaining), limit, max_rounds)
 
 
-def _fill_compiled(k_, hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_rounds: int,
+def _fill_compiled(k_, hull: Hull, steps: np.ndarray, remaining: float, limit: TimeLimit, max_rounds: int,
                    idx: np.ndarray | None = None):
     """``fill`` on a compiled hull; ``idx``: the objects ready for the first round, if known."""
     value, d_cost, count = hull.value, hull.d_cost, np.ascontiguousarray(hull.count, np.int64)
@@ -324,7 +324,7 @@ def _fill_compiled(k_, hull: Hull, steps: np.ndarray, remaining: float, limit: L
     return rounds, "done"
 
 
-def fill_numpy(hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_rounds: int):
+def fill_numpy(hull: Hull, steps: np.ndarray, remaining: float, limit: TimeLimit, max_rounds: int):
     """The vectorised reference of ``fill`` (same rounds, same increments)."""
     k, n = hull.shape
     vflat, cflat = hull.value.ravel(), hull.d_cost.ravel()
@@ -377,7 +377,7 @@ def solve(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     max_rounds: int = 64,
 ) -> Result:
@@ -429,7 +429,7 @@ def solve_numpy(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     max_rounds: int = 64,
 ) -> Result:

@@ -40,7 +40,7 @@ import numpy as np
 
 from .. import kernels
 from . import greedy
-from .candidates import NO_LIMIT, Candidates, Limit
+from .candidates import NO_LIMIT, Candidates, TimeLimit
 from .result import Result
 
 __all__ = ["solve", "start", "solve_numpy", "start_numpy"]
@@ -95,7 +95,7 @@ def solve(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     fill_rounds: int = 64,
 ) -> Result:
@@ -163,7 +163,7 @@ def solve(
         "threshold": float(stop) if np.isfinite(stop) and stop > 0 else None})
 
 
-def _solve_full(k_, cand: Candidates, budget: float, prev: np.ndarray, limit: Limit, fill_rounds: int,
+def _solve_full(k_, cand: Candidates, budget: float, prev: np.ndarray, limit: TimeLimit, fill_rounds: int,
                 expired: bool = False) -> Result:
     """The compiled path over stored hulls: one radix cut of every increment (or, ``expired``, the start
     clamped to the budget)."""
@@ -191,7 +191,7 @@ def solve_numpy(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     fill_rounds: int = 64,
 ) -> Result:

@@ -44,7 +44,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import mixed_gradient
-from .candidates import NO_LIMIT, Candidates, Limit
+from .candidates import NO_LIMIT, Candidates, TimeLimit
 from .mixed_problem import Smooth, discrete_increments, mixed_result
 from .result import Result
 
@@ -134,7 +134,7 @@ def solve(
     budget: float,
     *,
     smooth: Smooth | None = None,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     iterations: int = 10_000,
     band: int | None = None,

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .candidates import NO_LIMIT, Candidates, Limit
+from .candidates import NO_LIMIT, Candidates, TimeLimit
 from .mixed_problem import Smooth, discrete_increments, mixed_result
 from .result import Result
 
@@ -34,7 +34,7 @@ def solve(
     budget: float,
     *,
     smooth: Smooth,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     iterations: int = 10_000,
     barrier: float | None = None,
     x_floor: float = 1e-3,
