@@ -67,8 +67,8 @@ def solve(
     if limit.expired():
         return Result(level, 0.0, 0.0, {"stopped": "limit", "status": "not started"})
     m = obj.size
-    # Costs in units of the budget: costs of a few µs sit near HiGHS' tolerances, and its
-    # "Optimal" then fell short of the greedy (seen at n = 200). Scaling both leaves the knapsack unchanged.
+    # Costs in units of the budget: per-object costs of microseconds sit near HiGHS' tolerances, and its
+    # "Optimal" could then fall short of the greedy. Scaling both leaves the knapsack unchanged.
     b, c = cand.benefit[obj, opt], cand.cost[obj, opt] / budget
     rows_used, row_of = np.unique(obj, return_inverse=True)
     r = rows_used.size

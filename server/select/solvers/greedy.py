@@ -129,8 +129,8 @@ _pool = threading.local()
 
 
 def _scratch(n: int, k: int, opt_dtype, bins: int) -> dict:
-    """This thread's scratch arrays for n objects × k options, grown as needed and reused: on this machine
-    touching fresh pages costs more than the arithmetic of a solve."""
+    """This thread's scratch arrays for n objects × k options, grown as needed and reused: touching fresh
+    pages costs more than the arithmetic of a solve."""
     have = getattr(_pool, "arrays", None)
     if have is None or have["n"] < n or have["k"] < k or have["opt"].dtype != opt_dtype:
         cap_n = max(n, have["n"] if have is not None else 0)
@@ -160,7 +160,7 @@ def upper_hull_numpy(cand: Candidates, cap: float | None = None) -> Hull:
     Objects whose options are already sorted by cost with falling values (the usual
     concave levels) take a fast path of a few passes per column; the others are
     sorted by cost and pruned in at most K vectorised passes. Few large
-    temporaries: on this machine fresh pages cost more than the arithmetic.
+    temporaries: fresh pages cost more than the arithmetic.
     """
     b, c = cand.benefit, cand.cost
     n, k = b.shape
