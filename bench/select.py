@@ -292,10 +292,11 @@ def run(sizes=(1_000, 10_000, 100_000, 1_000_000), levels: int = 4, repeats: int
     if not sizes or min(sizes) < 1 or levels < 1 or repeats < 1:
         raise ValueError("sizes, levels and repeats must be positive")
     parts = ("greedy", "coherent", "bounds", "exact", "reference")
-    from server.select.solvers import greedy as greedy_module
+    from server.select import kernels
 
     t0 = time.perf_counter()
-    compiled = greedy_module.warm_up()  # time the solvers as a warm server runs them, not while numba compiles
+    # Time the solvers as a warm server runs them, not while numba compiles.
+    compiled = kernels.warm_up(setting=os.environ.get("WALKSTREAM_NUMBA"))
     warm_s = time.perf_counter() - t0
     rows = []
     for n in sizes:

@@ -38,5 +38,5 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   touch "$stamp"
 fi
 # Compile the selection kernels (numba) once into their cache, so no server or test process
-# spends its first seconds compiling them (about 15 s cold, 1 s from the cache).
-.venv/bin/python -c "from server.select.solvers import greedy; greedy.warm_up() or print('bootstrap: numba kernels unavailable, the solvers use numpy', flush=True)"
+# spends its first seconds compiling them.
+.venv/bin/python -c "from server.select import kernels; kernels.warm_up() or print('bootstrap: numba kernels unavailable, the solvers use numpy', flush=True)"

@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import hmac
 import logging
+import os
 import socket
 import time
 import uuid
@@ -496,11 +497,13 @@ def serve(
         check_state_url(state_url)
     scenes = load_scenes(paths)
     # Selections switch from the numpy reference to the compiled kernels once those are ready; doing that
-    # mid-session could flip a tie and morph an object for nothing, so sessions start only after it (from
-    # numba's cache: a second or two; the bootstrap fills the cache).
-    from .select.solvers import greedy
+    # mid-session could flip a tie and morph an object for nothing, so sessions start only after it (the
+    # bootstrap fills numba's cache, from which it is quick). WALKSTREAM_NUMBA=0 keeps the kernels off.
+    from .select import kernels
 
-    greedy.warm_up(timeout=300)
+    began = time.perf_counter()
+    compiled = kernels.warm_up(timeout=300, setting=os.environ.get("WALKSTREAM_NUMBA"))
+    log.info("selection kernels: %s after %.1f s", "numba" if compiled else "numpy", time.perf_counter() - began)
     sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     if limits.send_buffer is not None:  # accepted connections inherit it (and lose autotuning)

@@ -20,9 +20,9 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 def _compiled_kernels_ready():
     """In-process sessions use the compiled selection kernels from their first selection, as a server does
     (``server.app.serve`` waits for them): a switch mid-session from the numpy path could flip a tie."""
-    from server.select.solvers import greedy
+    from server.select import kernels
 
-    greedy.warm_up(timeout=600)
+    kernels.warm_up(timeout=600, setting=os.environ.get("WALKSTREAM_NUMBA"))
 
 
 @pytest.fixture(scope="session")

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from server.select.solvers.candidates import Candidates, Limit
+from server.select.solvers.candidates import Candidates, TimeLimit
 from server.select.solvers.hierarchical import Forest, coarsest_cut, is_valid_cut, solve
 
 # ---------------------------------------------------------------------------- random forests
@@ -89,9 +89,9 @@ def naive_valid(f: Forest, level: np.ndarray) -> bool:
     return True
 
 
-def fake_limit(checks_before_expiry: int) -> Limit:
-    """A Limit whose clock is the number of checks made: expires on check ``checks_before_expiry + 1``."""
-    lim = Limit(clock=lambda: 0.0, deadline=checks_before_expiry + 1)
+def fake_limit(checks_before_expiry: int) -> TimeLimit:
+    """A TimeLimit whose clock is the number of checks made: expires on check ``checks_before_expiry + 1``."""
+    lim = TimeLimit(clock=lambda: 0.0, deadline=checks_before_expiry + 1)
     lim.clock = lambda: float(lim.checks)
     return lim
 

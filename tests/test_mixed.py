@@ -10,8 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize
 
-from server.select.solvers.candidates import Candidates, Limit
-from server.select.solvers.mixed import Smooth, solve
+from server.select.solvers.candidates import Candidates, TimeLimit
+from server.select.solvers.mixed import solve
+from server.select.solvers.mixed_problem import Smooth
 
 EMPTY = Candidates.of(np.zeros((0, 1)), np.zeros((0, 1)))
 
@@ -277,7 +278,7 @@ class _Ticks:
 def test_limit_returns_a_feasible_partial_result(deadline):
     cand, sm = _instance(3, 30, 4, 20, quad=True)
     full = solve(cand, 6.0, smooth=sm, band=1)
-    limit = Limit(clock=_Ticks(), deadline=deadline)
+    limit = TimeLimit(clock=_Ticks(), deadline=deadline)
     r = solve(cand, 6.0, smooth=sm, band=1, limit=limit)
     assert r.stats["stopped"] == "limit"
     assert r.stats["iterations"] == int(deadline) - 1

@@ -201,7 +201,7 @@ def test_hierarchical_selection_on_a_city_refines_within_budget_and_cuts_validly
 
 
 def test_a_nodes_screen_size_never_exceeds_its_visible_childrens_together():
-    from server.select.selection import _node_size
+    from server.select.options import node_size
 
     # Root 0 over 1 and 2; 1 over 3 and 4. Two cameras; row order need not be parents first.
     parent = np.array([-1, 0, 0, 1, 1])
@@ -210,9 +210,9 @@ def test_a_nodes_screen_size_never_exceeds_its_visible_childrens_together():
     rows = np.array([3, 0, 4, 1, 2])
     own = np.array([[10.0, 900.0, 20.0, 500.0, 100.0],   # camera 0: the boxes' gaps make the inner nodes larger
                     [10.0, 50.0, 20.0, 500.0, 100.0]])  # camera 1: the root's own box is the smaller
-    got = _node_size(lv, rows, own)
+    got = node_size(lv, rows, own)
     # Node 1: min(500, 10 + 20) = 30; root: min(900, 30 + 100) = 130, and min(50, 130) = 50 under camera 1.
     np.testing.assert_array_equal(got, [[10.0, 130.0, 20.0, 30.0, 100.0], [10.0, 50.0, 20.0, 30.0, 100.0]])
     # Culled children (not among the rows) do not count: node 1 alone under the root.
-    got = _node_size(lv, np.array([0, 1]), np.array([[900.0, 500.0]]))
+    got = node_size(lv, np.array([0, 1]), np.array([[900.0, 500.0]]))
     np.testing.assert_array_equal(got, [[500.0, 500.0]])

@@ -1,6 +1,6 @@
 """The selection's compiled kernels (projection, benefit) against the numpy reference they replace.
 
-A session's selection runs ``_view_kernels`` once numba is warm and the numpy
+A session's selection runs ``kernels.view`` once numba is warm and the numpy
 functions of ``camera`` and ``benefit`` before that (or with WALKSTREAM_NUMBA=0):
 both must give the same sizes, offsets, speeds and benefits (up to rounding), and
 so the same choices.
@@ -17,23 +17,21 @@ from hypothesis import strategies as st
 
 from proto.camera import far_plane, projection_matrix, view_matrix
 from server.scene.store import SceneStore
-from server.select import selection
+from server.select import options
 from server.select.benefit import BenefitFactors, benefit_matrix, importance
 from server.select.camera import View, centre_offset, cull_boxes, screen_size, screen_speed, widened
 from server.select.cost import CostModel
 from server.select.selection import Interval, Memory, Scene, select
-from server.select.solvers import greedy
+from server.select import kernels
 
 BOUNDS = np.array([[-60.0, -60.0, -5.0], [60.0, 60.0, 30.0]])
 
 
 @pytest.fixture(scope="module")
 def kern():
-    greedy.use_kernels(True)  # waits for the compile (or the cache)
-    from server.select import _view_kernels
-
-    yield _view_kernels
-    greedy.use_kernels(None)
+    kernels.use_kernels(True)  # waits for the compile (or the cache)
+    yield kernels.compiled().view
+    kernels.use_kernels(None)
 
 
 def _boxes(seed: int, n: int, dtype=np.float32):
@@ -107,8 +105,8 @@ def test_benefit_sum_equals_the_weighted_benefit_matrices(kern, seed, n, levels,
                                            object_class=klass, importance_table=table, offset=offset[j],
                                            speed=speed[j], previous=previous)
     want = np.where(valid, want, 0.0)
-    got = selection._benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass,
-                                    table, previous)
+    got = options.benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass,
+                                 table, previous)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
     if imp and klass.size:
         assert importance(klass, table).shape == (n,)
@@ -138,14 +136,14 @@ def test_benefit_sum_with_original_faces_equals_the_numpy_path(kern, seed, n, le
                                            original_faces=original, offset=offset[j], speed=speed[j],
                                            previous=previous)
     want = np.where(valid, want, 0.0)
-    got = selection._benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, None,
-                                    None, previous, original)
+    got = options.benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, None,
+                                 None, previous, original)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
     # The original faces are really read: a node of 1,000 faces standing for 40,000, over 10⁵ pixels.
-    one = selection._benefit_kernel(kern, np.array([[1e5]]), np.zeros((1, 1)), [None], np.ones(1),
-                                    np.array([[1000]]), np.array([[600]]), np.ones((1, 1), bool), 1,
-                                    BenefitFactors(accuracy="zach", focus=False), None, None, None,
-                                    np.array([40_000.0]))
+    one = options.benefit_kernel(kern, np.array([[1e5]]), np.zeros((1, 1)), [None], np.ones(1),
+                                 np.array([[1000]]), np.array([[600]]), np.ones((1, 1), bool), 1,
+                                 BenefitFactors(accuracy="zach", focus=False), None, None, None,
+                                 np.array([40_000.0]))
     assert one[0, 0] == pytest.approx(1e5 * 1000 / 40_000)
 
 
@@ -188,13 +186,13 @@ def test_kernels_and_numpy_choose_alike_over_a_walk(kern, denhaag_store, solver,
         walk = _tour_views(index, 8)
         runs = []
         for compiled in (True, False):
-            greedy.use_kernels(compiled)
+            kernels.use_kernels(compiled)
             memory, choices = Memory(), []
             for i, view in enumerate(walk):
                 choices.append(select(scene, view, cost, 0.01, solver, 0.0, memory=memory, t=0.5 * i + 0.1,
                                       algorithms=algorithms))
             runs.append(choices)
-        greedy.use_kernels(True)
+        kernels.use_kernels(True)
     drawn = 0
     for a, b in zip(*runs):
         assert a.reps.tolist() == b.reps.tolist()
@@ -215,7 +213,7 @@ def test_the_hot_path_uses_the_kernels_and_is_fast(kern, denhaag_store, monkeypa
             raise AssertionError("the numpy reference ran on the hot path")
 
         for name in ("screen_size", "centre_offset", "screen_speed", "cull_boxes", "benefit_matrix"):
-            monkeypatch.setattr(selection, name, numpy_pass)
+            monkeypatch.setattr(options, name, numpy_pass)
         memory, cpu = Memory(), []
         for i, view in enumerate(walk):
             c0 = time.thread_time()

@@ -13,7 +13,7 @@ from hypothesis.extra.numpy import arrays
 
 from server.select import solvers
 from server.select.solvers import baselines, exact, greedy, incremental
-from server.select.solvers.candidates import Candidates, Limit
+from server.select.solvers.candidates import Candidates, TimeLimit
 
 OPTIMISING = ["greedy", "optimization", "exact"]
 
@@ -60,10 +60,10 @@ def check_feasible(cand: Candidates, budget: float, r) -> None:
     assert r.stats["stopped"] in ("done", "limit")
 
 
-def fake_limit(after: int) -> Limit:
+def fake_limit(after: int) -> TimeLimit:
     """A limit whose clock expires after ``after`` checks (a counting clock, no time involved)."""
     ticks = itertools.count()
-    return Limit(clock=lambda: float(next(ticks)), deadline=float(after))
+    return TimeLimit(clock=lambda: float(next(ticks)), deadline=float(after))
 
 
 def with_previous(cand: Candidates, previous: np.ndarray) -> Candidates:
@@ -114,9 +114,6 @@ def test_greedy_stops_at_the_limit_between_fill_rounds():
 # ----------------------------------------------------------------------------- quality
 
 
-RATIOS: list[float] = []
-
-
 @settings(max_examples=200, deadline=None)
 @given(instances(n=st.integers(1, 4), levels=st.integers(1, 3)))
 def test_exact_equals_brute_force_and_greedy_reaches_half_of_it(inst):
@@ -127,17 +124,40 @@ def test_exact_equals_brute_force_and_greedy_reaches_half_of_it(inst):
     assert abs(ex.benefit - best) <= 1e-6 * max(1.0, best)
     gr = greedy.solve(cand, budget)
     assert gr.benefit >= 0.5 * best - 1e-9
-    if best > 0:
-        RATIOS.append(gr.benefit / best)
     # The LP relaxation bounds every integral selection.
     assert exact.upper_bound(cand, budget) >= best - 1e-9 * max(1.0, best)
 
 
-def test_report_typical_greedy_ratio():
-    if RATIOS:
-        r = np.array(RATIOS)
-        print(f"\ngreedy / optimum over {r.size} instances: mean {r.mean():.4f}, min {r.min():.4f}, "
-              f"median {np.median(r):.4f}")
+def _random_instance(rng: np.random.Generator) -> tuple[Candidates, float]:
+    """One instance drawn as ``instances`` draws them (1–4 objects, 1–3 levels, 1–2 algorithms)."""
+    n, lv, r = int(rng.integers(1, 5)), int(rng.integers(1, 4)), int(rng.choice([1, 2]))
+    k = lv * r
+    cost = np.cumsum(rng.uniform(1e-3, 1.0, (n, lv, r)), axis=1).reshape(n, k)
+    if rng.random() < 0.5:
+        benefit = np.cumsum(np.sort(rng.uniform(0.0, 1.0, (n, lv, r)), axis=1)[:, ::-1], axis=1).reshape(n, k)
+    else:
+        benefit = rng.uniform(0.0, 2.0, (n, k))
+    count = rng.integers(1, lv + 1, n)
+    valid = (np.arange(k)[None, :] // r) < count[:, None]
+    budget = float(rng.uniform(0.0, float(np.where(valid, cost, 0).max(axis=1).sum()) * 1.1))
+    return Candidates.of(benefit, cost, valid, algorithms=r), budget
+
+
+def test_the_greedy_is_typically_at_the_optimum_not_at_half_of_it():
+    """The factor two is the worst case: over random small instances the greedy usually finds the
+    optimum and on average comes within a few per cent of it."""
+    rng = np.random.default_rng(0)
+    ratios = []
+    for _ in range(200):
+        cand, budget = _random_instance(rng)
+        best = brute(cand, budget)
+        if best > 0:
+            ratios.append(greedy.solve(cand, budget).benefit / best)
+    r = np.array(ratios)
+    assert r.size >= 100
+    assert r.min() >= 0.5 - 1e-9
+    assert np.median(r) >= 1 - 1e-9
+    assert r.mean() >= 0.95
 
 
 def _highs_lp(cand: Candidates, budget: float) -> float:

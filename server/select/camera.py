@@ -86,7 +86,7 @@ def _clip_matrix(eye, forward, up, fov_y: float, aspect: float, far: float) -> n
     """``projection_matrix(fov_y, aspect, NEAR, far) @ view_matrix(eye, forward, up)`` in scalar arithmetic.
 
     The same formulas as ``proto.camera`` (equal up to rounding; the tests compare them): numpy's
-    per-call overhead on 3-vectors and 4×4 products cost more than the arithmetic, several times a selection.
+    per-call overhead on 3-vectors and 4×4 products costs more than the arithmetic, several times a selection.
     """
     fx, fy, fz = (float(c) for c in forward)
     ux, uy, uz = (float(c) for c in up)
@@ -175,7 +175,7 @@ def screen_size(lo: np.ndarray, hi: np.ndarray, clip: np.ndarray, width: int, he
     m = np.asarray(clip, np.float64)
     base = lo @ m[:, :3].T + m[:, 3]  # (n, 4) clip coordinates of the lo corner
     axes = ext[:, :, None] * m[:, :3].T[None, :, :]  # (n, 3, 4) clip delta along each box edge
-    corners = base[:, None, :] + _CORNERS @ axes  # (n, 8, 4); a matmul, ~10× faster than the same einsum
+    corners = base[:, None, :] + _CORNERS @ axes  # (n, 8, 4); a matmul, much faster than the same einsum
     w = corners[..., 3]
     behind = (w <= 1e-6).any(axis=1)
     safe_w = np.where(w > 1e-6, w, 1.0)

@@ -22,11 +22,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import solvers
-from .benefit import BenefitFactors, benefit_matrix, original_faces, resolved_accuracy
-from .camera import View, centre_offset, cull_boxes, cull_hierarchy, screen_size, screen_speed, widened
+from . import options, solvers
+from .benefit import BenefitFactors, original_faces, resolved_accuracy
+from .camera import View, cull_hierarchy, widened
 from .cost import CostModel
-from .solvers.candidates import NO_LIMIT, Candidates, Limit
+from .solvers.candidates import NO_LIMIT, Candidates, TimeLimit
 
 __all__ = ["Levels", "Scene", "Memory", "Choice", "Interval", "select", "HIERARCHICAL", "MIXED"]
 
@@ -91,7 +91,7 @@ class Levels:
             finest = np.where(count > 0, self.rep_faces[self.rep_first.astype(np.int64) + np.maximum(count, 1) - 1], 0)
             return original_faces(finest, self.parent)
 
-        return _cached(self, "original_faces", make)
+        return options.cached(self, "original_faces", make)
 
     def depth(self) -> np.ndarray:
         """(n,) int64 each row's depth in its hierarchy (0 for roots and for a view without one), computed once."""
@@ -107,7 +107,7 @@ class Levels:
                 alive = alive[up[alive] >= 0]
             return depth
 
-        return _cached(self, "depth", make)
+        return options.cached(self, "depth", make)
 
 
 @dataclass(frozen=True)
@@ -218,228 +218,6 @@ class Choice:
     pixels: float = 0.0  # estimated pixels the drawn objects cover (box area over the sampled cameras)
 
 
-def _cached(lv, key, make):
-    """A per-``Levels`` array derived from its static fields, computed once (the views live as long as the scene)."""
-    cache = vars(lv).setdefault("_derived", {})
-    if key not in cache:
-        cache[key] = make()
-    return cache[key]
-
-
-def _options(lv: Levels, rows: np.ndarray, algorithms: int = 1):
-    """(v, K·R) representation ids, validity, faces and vertices of the given rows' options.
-
-    Option k is level k // R drawn with the k % R-th offered rendering algorithm
-    (F&S's tuples (O, L, R)); with R = 1 options are levels. K is the most levels
-    among ``rows``. The arrays of all rows are built once per view and gathered.
-    """
-    def every():
-        count = lv.rep_count.astype(np.int64)
-        k = int(count.max()) if count.size else 1
-        slot = np.arange(k)[None, :]
-        valid = slot < count[:, None]
-        rep = np.where(valid, lv.rep_first[:, None].astype(np.int64) + slot, 0)
-        faces, vertices = np.where(valid, lv.rep_faces[rep], 0), np.where(valid, lv.rep_vertices[rep], 0)
-        if algorithms > 1:
-            rep, valid, faces, vertices = (np.repeat(a, algorithms, axis=1) for a in (rep, valid, faces, vertices))
-        return count, rep, valid, faces, vertices
-
-    count, *arrays = _cached(lv, ("options", algorithms), every)
-    k = int(np.take(count, rows).max()) if rows.size else 1
-    cols = k * algorithms
-    out = (np.take(a, rows, axis=0) for a in arrays)  # take: ~10× faster than a[rows, :cols]
-    return tuple(a if a.shape[1] == cols else np.ascontiguousarray(a[:, :cols]) for a in out)
-
-
-def _tuple_cost(cost_model, faces, vertices, pixels, algorithm):
-    """(v, K) seconds per option: the model's F&S terms where it has them, else c_vertex · vertices."""
-    terms = getattr(cost_model, "predict_terms", None)
-    if terms is None:
-        return cost_model.predict(vertices)
-    return terms(faces, vertices, pixels, algorithm, 1.0)
-
-
-def _view_kernels():
-    """The compiled projection and benefit kernels once the solvers' kernels are warm, else None (numpy)."""
-    from .solvers import greedy
-
-    return greedy.view_kernels_now()
-
-
-def _stack(cams):
-    """(C, 4, 4) clip matrices, (C, 6, 4) planes, (C,) widths and heights of the cameras."""
-    clips = np.stack([c.clip for c in cams])
-    planes = np.stack([c.planes for c in cams])
-    widths = np.array([c.view.width for c in cams], np.float64)
-    heights = np.array([c.view.height for c in cams], np.float64)
-    return clips, planes, widths, heights
-
-
-def _before(memory, cams):
-    """The previous view's clip matrix and each camera's dt to it (None where motion is not measured)."""
-    if memory is None or memory.view is None or memory.t is None:
-        return None, [None] * len(cams)
-    dts = [c.t - memory.t if c.t is not None and c.t > memory.t else None for c in cams]
-    if all(d is None for d in dts):
-        return None, dts
-    return memory.view.matrix(), dts
-
-
-def _project(lv, rows, cams, before, dts):
-    """(C, v) screen size (0 outside a camera's frustum when there are several), centre offset and
-    screen speed (None for a camera without a motion measure) of ``rows`` under every camera."""
-    kern = _view_kernels()
-    many = len(cams) > 1
-    if kern is not None:
-        clips, planes, widths, heights = _stack(cams)
-        c, v = len(cams), rows.size
-        size, offset, moved = np.empty((c, v)), np.empty((c, v)), np.empty((c, v))
-        kern.project(lv.object_lo, lv.object_hi, rows.astype(np.int64, copy=False), clips, planes, widths, heights,
-                     many, clips[0] if before is None else before, before is not None, size, offset, moved)
-        moving = np.array([dt is not None for dt in dts])
-        if moving.any():
-            moved /= np.array([float(dt) if dt is not None else 1.0 for dt in dts])[:, None]
-        return size, offset, [moved[j] if m else None for j, m in enumerate(moving)]
-    lo, hi = lv.object_lo[rows], lv.object_hi[rows]
-    size, offset, speed = [], [], []
-    for cam, dt in zip(cams, dts):
-        wide, clip = cam.view, cam.clip
-        s = screen_size(lo, hi, clip, wide.width, wide.height)
-        size.append(np.where(cull_boxes(lo, hi, cam.planes), s, 0.0) if many else s)
-        offset.append(centre_offset(lo, hi, clip, wide.width, wide.height))
-        speed.append(None if dt is None else screen_speed(lo, hi, clip, before, dt, wide.width, wide.height))
-    return np.stack(size), np.stack(offset), speed
-
-
-def _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=(0,), pixel_scale=1.0):
-    """Per visible row: (v, K) benefit and cost of each option, with the F&S factors the inputs allow.
-
-    Over several cameras (an ``Interval``) benefit is their weighted sum, a row
-    outside a camera's frustum gaining nothing from it, and size the mean over
-    the sampled ones; cost is the maximum over the sampled cameras — with a
-    fitted fill term it depends on the pixels covered, estimated as the box's
-    screen area × ``pixel_scale`` (the measured share of box area really covered).
-    ``algorithms`` are the offered rendering algorithms (indices into
-    ``proto.messages.ALGORITHMS``); option k draws level k // R with ``algorithms[k % R]``.
-    """
-    r = len(algorithms)
-    rep, valid, faces, vertices = _options(lv, rows, r)
-    alg = np.asarray(algorithms, np.int64)[np.arange(faces.shape[1]) % r][None, :]
-    if r > 1 or tuple(algorithms) != (0,):
-        from proto.messages import ALGORITHMS
-
-        factors = replace(factors, algorithm_names=tuple(ALGORITHMS[a] for a in algorithms))
-    previous = None
-    if memory is not None and memory.option is not None:
-        previous = memory.option[lv.ids[rows]] if lv.ids is not None else memory.option[rows]
-    klass = lv.object_class[rows] if lv.object_class is not None and scene.importance is not None else None
-    before, dts = _before(memory, cams)
-    size, offset, speed = _project(lv, rows, cams, before, dts)
-    if lv.parent is not None:
-        size = _node_size(lv, rows, size)
-    weight = np.array([cam.weight for cam in cams], np.float64)
-    original = lv.original_faces()[rows] if factors.accuracy == "zach" else None
-    kern = _view_kernels()
-    if kern is not None:
-        benefit = _benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass,
-                                  scene.importance, previous, original)
-    else:
-        benefit = np.zeros(faces.shape)
-        for j in range(len(cams)):
-            benefit += weight[j] * benefit_matrix(
-                size[j], faces, algorithms=r, factors=factors, vertices=vertices, original_faces=original,
-                object_class=klass, importance_table=scene.importance, offset=offset[j], speed=speed[j],
-                previous=previous,
-            )
-        benefit = np.where(valid, benefit, 0.0)
-    sampled = np.array([cam.sampled for cam in cams])
-    # Cost is the maximum over the sampled cameras. The models' costs never fall with the pixels covered
-    # (non-negative coefficients), so that is the cost at the most pixels any of them sees — to the bit,
-    # as rounding is monotone too — and the model runs once.
-    pixels = (size[sampled].max(axis=0) * pixel_scale)[:, None] if sampled.any() else np.zeros((rows.size, 1))
-    cost = np.where(valid, _tuple_cost(cost_model, faces, vertices, pixels, alg), np.inf)
-    mean_size = size[sampled].sum(axis=0) / max(int(sampled.sum()), 1) if sampled.any() else np.zeros(rows.size)
-    return mean_size, rep, valid, faces, benefit, cost, previous
-
-
-def _node_size(lv: Levels, rows: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """(C, v) screen size of hierarchy nodes: a node's own box, but never more than its visible children's together.
-
-    A node stands for the objects below it, and its box also covers the gaps between them:
-    seen from inside a city the root's box fills the screen while its children's cover half
-    of it. Zach's screenSize(o) is the object's, so a split must not lose the gaps' pixels
-    (it made splitting the root worth nothing). Bottom-up one depth at a time over ``rows``
-    (visible rows: a visible node's parent is among them), every camera at once.
-    """
-    v = rows.size
-    c = size.shape[0]
-    local = np.full(lv.n, -1, np.int64)
-    local[rows] = np.arange(v)
-    up = lv.parent[rows]
-    parent = np.where(up >= 0, local[np.maximum(up, 0)], -1)
-    if not (parent >= 0).any():
-        return size
-    depth = lv.depth()[rows]
-    has_kids = np.bincount(parent[parent >= 0], minlength=v) > 0
-    out = size.copy()
-    kids = np.zeros((c, v))
-    base = (np.arange(c) * v)[:, None]
-    for d in range(int(depth.max()), 0, -1):
-        q = np.nonzero(depth == d)[0]  # final: their own children were summed in the previous pass
-        q = q[parent[q] >= 0]
-        kids += np.bincount((base + parent[q][None, :]).ravel(), weights=out[:, q].ravel(),
-                            minlength=c * v).reshape(c, v)
-        done = np.nonzero((depth == d - 1) & has_kids)[0]
-        out[:, done] = np.minimum(out[:, done], kids[:, done])
-    return out
-
-
-def _benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass, table, previous,
-                    original=None):
-    """``benefit_matrix`` summed over the cameras in one compiled pass (same factors, same arithmetic).
-
-    original : (v,) Zach's #originalFaces (``benefit_matrix``'s ``original_faces``), None: each row's most faces
-    """
-    from .benefit import ALGORITHM_SAMPLES, importance
-
-    names = factors.algorithm_names
-    if r < 1 or r > len(names):
-        raise ValueError(f"algorithms must be in 1..{len(names)}, got {r}")
-    mode = {"off": kern.ACCURACY_OFF, "fs": kern.ACCURACY_FS, "auto": kern.ACCURACY_FS,
-            "zach": kern.ACCURACY_ZACH}[factors.accuracy]
-    orig = np.zeros(0) if original is None else np.ascontiguousarray(original, np.float64)
-    if orig.size and orig.shape != faces.shape[:1]:
-        raise ValueError(f"original faces must be ({faces.shape[0]},); got {orig.shape}")
-    per_vertex = np.array([ALGORITHM_SAMPLES.get(names[a], "faces") == "vertices" for a in range(r)])
-    exponent = np.array([float(factors.exponent[names[a]]) for a in range(r)])
-    empty2 = np.zeros((0, 0))
-    imp = (importance(klass, table) if factors.importance and klass is not None and table is not None
-           else np.zeros(0))
-    off = offset if factors.focus else empty2
-    moving = np.array([factors.motion and s is not None for s in speed])
-    spd = np.stack([np.zeros(size.shape[1]) if s is None else s for s in speed]) if moving.any() else size
-    prev = (np.asarray(previous, np.int64) if factors.hysteresis and previous is not None
-            else np.zeros(0, np.int64))
-    out = np.empty(faces.shape)
-    kern.benefit_sum(size, off, spd, moving, weight, faces, vertices, valid, per_vertex, exponent, r, mode, orig,
-                     factors.size, imp, factors.focus_strength, factors.motion_strength, factors.frame_time, prev,
-                     factors.level_weight, factors.algorithm_weight, out)
-    return out
-
-
-def _cull(lv, cams) -> np.ndarray:
-    """(n,) bool — rows inside any camera's frustum."""
-    kern = _view_kernels()
-    if kern is not None:
-        visible = np.empty(lv.n, bool)
-        kern.cull_any(lv.object_lo, lv.object_hi, np.stack([cam.planes for cam in cams]), visible)
-        return visible
-    visible = np.zeros(lv.n, bool)
-    for cam in cams:
-        visible |= cull_boxes(lv.object_lo, lv.object_hi, cam.planes)
-    return visible
-
-
 def select(
     scene: Scene | Levels,
     view: View | Interval,
@@ -451,7 +229,7 @@ def select(
     memory: Memory | None = None,
     t: float | None = None,
     factors: BenefitFactors | None = None,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     algorithms: tuple = (0,),
     pixel_scale: float = 1.0,
 ) -> Choice:
@@ -473,7 +251,7 @@ def select(
     """
     if isinstance(scene, Levels):
         scene = Scene(flat=scene, n_objects=int(scene.ids.max()) + 1 if scene.ids is not None and scene.n else scene.n)
-    factors = _DEFAULT_FACTORS if factors is None else factors  # validating a new one each τ costs ~50 µs
+    factors = _DEFAULT_FACTORS if factors is None else factors  # one, not a new one validated each τ
     factors = resolved_accuracy(factors, hierarchical=solver in HIERARCHICAL)
     solve = solvers.get(solver)
     cams = _cameras(view, margin_deg, t)
@@ -503,15 +281,15 @@ def _remember(memory: Memory | None, scene: Scene, ids: np.ndarray, option: np.n
 def _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors, limit,
                  algorithms=(0,), pixel_scale=1.0) -> Choice:
     lv = scene.flat
-    rows = np.nonzero(_cull(lv, cams))[0]
+    rows = np.nonzero(options.cull(lv, cams))[0]
     smooth, trees = None, np.zeros(0, np.int64)
     if solver in MIXED:
         smooth, trees = _smooth(scene, cams, cost_model)
     if rows.size == 0 and trees.size == 0:
         _remember(memory, scene, np.zeros(0, np.int64), np.zeros(0, np.int64))
         return Choice(np.zeros(0, np.int64), 0.0, 0.0, 0, {"stopped": "done"})
-    size, rep, valid, faces, benefit, cost, previous = _benefit_cost(lv, rows, scene, cams, cost_model, memory,
-                                                                     factors, algorithms, pixel_scale)
+    size, rep, valid, faces, benefit, cost, previous = options.benefit_cost(lv, rows, scene, cams, cost_model,
+                                                                            memory, factors, algorithms, pixel_scale)
     cand = Candidates.of(benefit, cost, valid, size=size, faces=faces,
                          previous=None if previous is None else previous.astype(np.int64))
     state = dict(memory.solver) if memory is not None else {}
@@ -554,15 +332,15 @@ def _smooth(scene, cams, cost_model):
     Benefit weight is the pixels a group covers (× importance, weighted over the
     cameras like a mesh's); its cost at full resolution is the cost model's price of all its points.
     """
-    from .solvers.mixed import Smooth
+    from .solvers.mixed_problem import Smooth
 
     veg = scene.vegetation
     if veg is None or veg.n == 0:
         return Smooth.empty(), np.zeros(0, np.int64)
-    rows = np.nonzero(_cull(veg, cams))[0]
+    rows = np.nonzero(options.cull(veg, cams))[0]
     if rows.size == 0:
         return Smooth.empty(), rows
-    size, _, _ = _project(veg, rows, cams, None, [None] * len(cams))
+    size, _, _ = options.project(veg, rows, cams, None, [None] * len(cams))
     weight = np.zeros(rows.size)
     for cam, s in zip(cams, size):
         weight += cam.weight * s
@@ -585,9 +363,10 @@ def _select_hierarchical(scene, cams, cost_model, budget, solve, memory, factors
     if rows.size == 0:
         _remember(memory, scene, np.zeros(0, np.int64), np.zeros(0, np.int64))
         return Choice(np.zeros(0, np.int64), 0.0, 0.0, 0, {"stopped": "done"})
-    _, rep_v, valid_v, _, benefit_v, cost_v, _ = _benefit_cost(lv, rows, scene, cams, cost_model, memory, factors)
+    _, rep_v, valid_v, _, benefit_v, cost_v, _ = options.benefit_cost(lv, rows, scene, cams, cost_model, memory,
+                                                                      factors)
     # The forest spans every node; culled ones keep their levels (for shape checks) but are never cut.
-    rep, valid, _, vertices = _options(lv, np.arange(lv.n))
+    rep, valid, _, vertices = options.option_arrays(lv, np.arange(lv.n))
     k = valid.shape[1]
     benefit = np.zeros(valid.shape)
     cost = np.where(valid, cost_model.predict(vertices), 0.0)

@@ -12,10 +12,10 @@ from __future__ import annotations
 from typing import Callable
 
 from . import baselines, exact, greedy, incremental
-from .candidates import NO_LIMIT, Candidates, Limit
+from .candidates import NO_LIMIT, Candidates, TimeLimit
 from .result import Result
 
-__all__ = ["SOLVERS", "Candidates", "Limit", "NO_LIMIT", "Result", "get"]
+__all__ = ["SOLVERS", "Candidates", "TimeLimit", "NO_LIMIT", "Result", "get"]
 
 SOLVERS: dict[str, Callable[..., Result]] = {
     "none": baselines.none,

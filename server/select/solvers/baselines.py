@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .candidates import NO_LIMIT, Candidates, Limit
+from .candidates import NO_LIMIT, Candidates, TimeLimit
 from .result import Result
 
 __all__ = ["none", "static", "feedback", "PIXELS_PER_POLYGON"]
@@ -37,7 +37,7 @@ def _richest(cand: Candidates, mask: np.ndarray) -> np.ndarray:
     return np.where(mask.any(axis=1), last, -1).astype(np.int64)
 
 
-def none(cand: Candidates, budget: float, *, limit: Limit = NO_LIMIT, state: dict | None = None) -> Result:
+def none(cand: Candidates, budget: float, *, limit: TimeLimit = NO_LIMIT, state: dict | None = None) -> Result:
     """Every visible object at its highest level with the richest algorithm, whatever it costs."""
     return _result(cand, _richest(cand, cand.valid), budget)
 
@@ -46,7 +46,7 @@ def static(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     pixels_per_polygon: float = PIXELS_PER_POLYGON,
 ) -> Result:
@@ -77,7 +77,7 @@ def feedback(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     pixels_per_polygon: float = PIXELS_PER_POLYGON,
 ) -> Result:

@@ -7,7 +7,7 @@ K = levels × algorithms tuples as (n, K) arrays; option k of an object is level
 cheapest first: flat, lit, textured). Options an object lacks are padding,
 marked False in ``valid``.
 
-Solvers are pure: the time limit is a ``Limit`` carrying the caller's clock, so
+Solvers are pure: the time limit is a ``TimeLimit`` carrying the caller's clock, so
 ``server/select`` itself never reads one and a test can pass a fake clock that
 expires after a set number of checks.
 """
@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["Candidates", "Limit", "NO_LIMIT"]
+__all__ = ["Candidates", "TimeLimit", "NO_LIMIT"]
 
 
 @dataclass(frozen=True)
@@ -73,7 +73,7 @@ class Candidates:
 
 
 @dataclass
-class Limit:
+class TimeLimit:
     """A time limit as the caller's clock sees it: ``expired()`` once ``clock() ≥ deadline``.
 
     Solvers check it between rounds and return the best feasible solution found so far,
@@ -89,7 +89,7 @@ class Limit:
         return self.clock() >= self.deadline
 
 
-class _NoLimit(Limit):
+class _NoTimeLimit(TimeLimit):
     def __init__(self) -> None:
         super().__init__(clock=lambda: 0.0, deadline=float("inf"))
 
@@ -98,4 +98,4 @@ class _NoLimit(Limit):
 
 
 #: The default: run to completion.
-NO_LIMIT: Limit = _NoLimit()
+NO_LIMIT: TimeLimit = _NoTimeLimit()

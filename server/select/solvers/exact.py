@@ -11,14 +11,10 @@ no LP solver.
 
 from __future__ import annotations
 
-import os
-import sys
-import threading
-
 import numpy as np
 
 from . import greedy
-from .candidates import NO_LIMIT, Candidates, Limit
+from .candidates import NO_LIMIT, Candidates, TimeLimit
 from .result import Result
 
 __all__ = ["solve", "upper_bound"]
@@ -49,7 +45,7 @@ def solve(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     mip_gap: float = 1e-6,
     time_limit: float | None = None,
@@ -71,8 +67,8 @@ def solve(
     if limit.expired():
         return Result(level, 0.0, 0.0, {"stopped": "limit", "status": "not started"})
     m = obj.size
-    # Costs in units of the budget: costs of a few µs sit near HiGHS' tolerances, and its
-    # "Optimal" then fell short of the greedy (seen at n = 200). Scaling both leaves the knapsack unchanged.
+    # Costs in units of the budget: per-object costs of microseconds sit near HiGHS' tolerances, and its
+    # "Optimal" could then fall short of the greedy. Scaling both leaves the knapsack unchanged.
     b, c = cand.benefit[obj, opt], cand.cost[obj, opt] / budget
     rows_used, row_of = np.unique(obj, return_inverse=True)
     r = rows_used.size
@@ -92,7 +88,7 @@ def solve(
     lp.a_matrix_.value_ = np.stack([np.ones(m), c], axis=1).ravel()
     lp.integrality_ = [highspy.HighsVarType.kInteger] * m
 
-    h = _quiet_highs(highspy)
+    h = _silent_highs(highspy)
     h.setOptionValue("mip_rel_gap", float(mip_gap))
     if time_limit is None and np.isfinite(limit.deadline):  # HiGHS keeps its own clock: hand it what is left
         time_limit = max(limit.deadline - limit.clock(), 1e-3)
@@ -126,29 +122,12 @@ def _repair(cand: Candidates, budget: float, level: np.ndarray):
     return level, cost, benefit
 
 
-_banner = threading.Lock()
-_banner_printed = False
-
-
-def _quiet_highs(highspy):
-    """A silent ``Highs``. HiGHS prints its banner to file descriptor 1 on the first construction in a
-    process, before any option can be set (ERGO-Code/HiGHS#2749); that would break ``--json`` output
-    and server logs, so the first one is built with descriptor 1 pointed at /dev/null."""
-    global _banner_printed
-    with _banner:
-        if _banner_printed:
-            h = highspy.Highs()
-        else:
-            sys.stdout.flush()
-            saved = os.dup(1)
-            try:
-                with open(os.devnull, "wb") as null:
-                    os.dup2(null.fileno(), 1)
-                    h = highspy.Highs()
-            finally:
-                os.dup2(saved, 1)
-                os.close(saved)
-            _banner_printed = True
+def _silent_highs(highspy):
+    """A HiGHS solver that writes nothing to stdout. ``highspy.Highs``' constructor enables its callbacks,
+    a solver call that prints HiGHS' banner to file descriptor 1 before any option can be set, which would
+    break ``--json`` output and server logs; the bare solver it extends (``highspy._Highs``, all this module
+    calls) takes the options first."""
+    h = highspy._Highs()
     h.setOptionValue("output_flag", False)
+    h.setOptionValue("log_to_console", False)
     return h
-

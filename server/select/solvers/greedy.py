@@ -21,18 +21,17 @@ with the best single option, which keeps the factor-two guarantee.
 
 from __future__ import annotations
 
-import atexit
-import os
 import threading
 from dataclasses import dataclass
 
 import numpy as np
 
-from .candidates import NO_LIMIT, Candidates, Limit
+from .. import kernels
+from .candidates import NO_LIMIT, Candidates, TimeLimit
 from .result import Result
 
-__all__ = ["Hull", "upper_hull", "cut", "fill", "threshold", "solve", "warm_up", "use_kernels",
-           "upper_hull_numpy", "fill_numpy", "solve_numpy"]
+__all__ = ["Hull", "upper_hull", "cut", "fill", "threshold", "solve", "upper_hull_numpy", "fill_numpy",
+           "solve_numpy"]
 
 _SAMPLE = 8192  # sample size that brackets the value threshold
 _MARGIN = 128  # sample positions either side of the estimated threshold (about 3 standard deviations)
@@ -92,7 +91,7 @@ def upper_hull(cand: Candidates, cap: float | None = None) -> Hull:
     One compiled pass per object when the kernels are ready (``hull.ok`` is then None and
     ``hull.best`` the best single option), else ``upper_hull_numpy``.
     """
-    k_ = _kernels_now()
+    k_ = kernels.compiled()
     if k_ is None:
         return upper_hull_numpy(cand, cap)
     return _hull_compiled(k_, cand, cap)
@@ -108,7 +107,7 @@ def _hull_compiled(k_, cand: Candidates, cap: float | None, *, scratch: bool = F
     n, k = b.shape
     opt_dtype = np.int16 if k < 2**15 else np.int64
     if scratch:
-        sp = _scratch(n, k, opt_dtype, k_.RADIX_BINS)
+        sp = _scratch(n, k, opt_dtype, k_.hull.RADIX_BINS)
         value, d_cost, opt, count = sp["value"], sp["d_cost"], sp["opt"], sp["count"]
         begin, hist = sp["begin"], sp["hist"]
     else:
@@ -116,8 +115,8 @@ def _hull_compiled(k_, cand: Candidates, cap: float | None, *, scratch: bool = F
         opt, count = np.empty((k, n), opt_dtype), np.empty(n, np.int64)
         begin, hist = np.empty(0, np.int64), np.empty(0)
     prev = _NO_PREVIOUS if previous is None else previous
-    best, total = k_.hull(b, c, valid, np.inf if cap is None else float(cap), prev, value, value.view(np.int64),
-                          d_cost, opt, count, begin, hist)
+    best, total = k_.hull.hull(b, c, valid, np.inf if cap is None else float(cap), prev, value,
+                               value.view(np.int64), d_cost, opt, count, begin, hist)
     h = Hull(value, d_cost, count, opt, cand, None, int(best))
     if scratch:
         h.begin, h.hist, h.total = begin, hist, float(total)
@@ -130,8 +129,8 @@ _pool = threading.local()
 
 
 def _scratch(n: int, k: int, opt_dtype, bins: int) -> dict:
-    """This thread's scratch arrays for n objects × k options, grown as needed and reused: on this machine
-    touching fresh pages costs more than the arithmetic of a solve."""
+    """This thread's scratch arrays for n objects × k options, grown as needed and reused: touching fresh
+    pages costs more than the arithmetic of a solve."""
     have = getattr(_pool, "arrays", None)
     if have is None or have["n"] < n or have["k"] < k or have["opt"].dtype != opt_dtype:
         cap_n = max(n, have["n"] if have is not None else 0)
@@ -161,7 +160,7 @@ def upper_hull_numpy(cand: Candidates, cap: float | None = None) -> Hull:
     Objects whose options are already sorted by cost with falling values (the usual
     concave levels) take a fast path of a few passes per column; the others are
     sorted by cost and pruned in at most K vectorised passes. Few large
-    temporaries: on this machine fresh pages cost more than the arithmetic.
+    temporaries: fresh pages cost more than the arithmetic.
     """
     b, c = cand.benefit, cand.cost
     n, k = b.shape
@@ -295,37 +294,37 @@ def _sorted_cut(value, weight, capacity, taken, base, idx):
     return taken
 
 
-def fill(hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_rounds: int):
+def fill(hull: Hull, steps: np.ndarray, remaining: float, limit: TimeLimit, max_rounds: int):
     """Rounds adding, in falling value, each object's next increment while it still fits.
 
     Returns (rounds, stopped); ``steps`` is updated in place. Only objects whose
     next increment fits are looked at, and the remaining budget only shrinks, so
     the set shrinks every round. The limit is checked before every round.
     """
-    k_ = _kernels_now()
+    k_ = kernels.compiled()
     if k_ is None or steps.dtype != np.int64 or not steps.flags.c_contiguous:
         return fill_numpy(hull, steps, remaining, limit, max_rounds)
     return _fill_compiled(k_, hull, steps, float(remaining), limit, max_rounds)
 
 
-def _fill_compiled(k_, hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_rounds: int,
+def _fill_compiled(k_, hull: Hull, steps: np.ndarray, remaining: float, limit: TimeLimit, max_rounds: int,
                    idx: np.ndarray | None = None):
     """``fill`` on a compiled hull; ``idx``: the objects ready for the first round, if known."""
     value, d_cost, count = hull.value, hull.d_cost, np.ascontiguousarray(hull.count, np.int64)
     if idx is None:
-        idx = k_.ready(value, d_cost, count, steps, remaining)
+        idx = k_.cut.ready(value, d_cost, count, steps, remaining)
     rounds = 0
     while idx.size and rounds < max_rounds:
         if limit.expired():
             return rounds, "limit"
-        idx, remaining, took = k_.fill_round(value, d_cost, count, steps, idx, remaining)
+        idx, remaining, took = k_.cut.fill_round(value, d_cost, count, steps, idx, remaining)
         if took == 0:
             break
         rounds += 1
     return rounds, "done"
 
 
-def fill_numpy(hull: Hull, steps: np.ndarray, remaining: float, limit: Limit, max_rounds: int):
+def fill_numpy(hull: Hull, steps: np.ndarray, remaining: float, limit: TimeLimit, max_rounds: int):
     """The vectorised reference of ``fill`` (same rounds, same increments)."""
     k, n = hull.shape
     vflat, cflat = hull.value.ravel(), hull.d_cost.ravel()
@@ -378,7 +377,7 @@ def solve(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     max_rounds: int = 64,
 ) -> Result:
@@ -392,14 +391,14 @@ def solve(
     n = cand.n
     if n == 0 or cand.k == 0 or not budget > 0:
         return _nothing(n)
-    k_ = _kernels_now()
+    k_ = kernels.compiled()
     if k_ is None:
         return solve_numpy(cand, budget, limit=limit, state=state, max_rounds=max_rounds)
     hull = _hull_compiled(k_, cand, budget, scratch=True)
     begin = hull.begin
     begin[:] = 0
-    spent, _, _, nr = k_.radix_cut(hull.value, hull.value.view(np.int64), hull.d_cost, hull.count, begin, 1.0,
-                                   float(budget), hull.hist, hull.total, hull.steps, hull.ready)
+    spent, _, _, nr = k_.cut.radix_cut(hull.value, hull.value.view(np.int64), hull.d_cost, hull.count, begin,
+                                       1.0, float(budget), hull.hist, hull.total, hull.steps, hull.ready)
     steps = hull.steps
     rounds, stopped = _fill_compiled(k_, hull, steps, float(budget) - spent, limit, max_rounds, hull.ready[:nr])
     return _finish_compiled(k_, cand, budget, hull, steps, {"stopped": stopped, "rounds": rounds})
@@ -412,8 +411,8 @@ def _nothing(n: int) -> Result:
 
 def _finish_compiled(k_, cand: Candidates, budget: float, hull: Hull, steps: np.ndarray, stats: dict) -> Result:
     """The chosen options and their totals, the best-single check, and the stats every greedy reports."""
-    level, cost, benefit, incs, cands, left = k_.finish(_c64(cand.benefit), _c64(cand.cost), hull.opt, hull.value,
-                                                         hull.count, steps)
+    level, cost, benefit, incs, cands, left = k_.cut.finish(_c64(cand.benefit), _c64(cand.cost), hull.opt,
+                                                             hull.value, hull.count, steps)
     single = False
     if hull.best is not None and hull.best >= 0:
         top = float(cand.benefit.flat[hull.best])
@@ -430,7 +429,7 @@ def solve_numpy(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     max_rounds: int = 64,
 ) -> Result:
@@ -463,89 +462,3 @@ def threshold(hull: Hull, steps: np.ndarray) -> float | None:
     nxt = nxt[steps < hull.count]
     top = float(nxt.max()) if nxt.size else -np.inf
     return top if np.isfinite(top) and top > 0 else None
-
-
-# ----------------------------------------------------------------------------- compiled kernels
-#
-# The kernels (``_kernels``, numba) compile on first use: 8–25 s on this 2-core machine without a
-# cache, ~0.5 s to load from it. So that no selection waits for that, importing this module starts a daemon thread
-# that imports numba and compiles (or loads) them; until it is done the solvers run their numpy
-# reference. ``warm_up()`` waits for it; ``use_kernels`` forces one path (tests, benchmarks).
-# WALKSTREAM_NUMBA=0 in the environment turns the kernels off, WALKSTREAM_NUMBA=wait makes the first
-# solve wait for them (benchmarks, tests of the compiled path).
-
-_mode: bool | None = None  # None: kernels once warm; True: always (waits for the compile); False: never
-_kern = None  # the _kernels module once warmed up
-_view = None  # the selection's projection and benefit kernels (``select._view_kernels``) once warmed up
-_warm_error: BaseException | None = None
-_warm_done = threading.Event()
-_warm_thread: threading.Thread | None = None
-
-
-def _warm() -> None:
-    global _kern, _view, _warm_error
-    try:
-        from . import _kernels
-
-        _kernels.warm_up()
-        _kern = _kernels
-        from .. import _view_kernels
-
-        _view_kernels.warm_up()
-        _view = _view_kernels
-    except Exception as e:  # numba missing or broken: the numpy reference stays in charge
-        _warm_error = e
-    finally:
-        _warm_done.set()
-
-
-def _start_warm_up() -> None:
-    global _warm_thread
-    if _warm_thread is None and os.environ.get("WALKSTREAM_NUMBA", "1") not in ("0", "false", "no", "off"):
-        _warm_thread = threading.Thread(target=_warm, name="walkstream-numba-warm-up", daemon=True)
-        _warm_thread.start()
-        atexit.register(_join_warm_up)
-    elif _warm_thread is None:
-        _warm_done.set()
-
-
-def _join_warm_up() -> None:
-    # Let a compile in progress end before the interpreter tears down (LLVM in a dying thread).
-    if _warm_thread is not None:
-        _warm_thread.join(timeout=30.0)
-
-
-def warm_up(timeout: float | None = None) -> bool:
-    """Wait until the compiled kernels are ready (at most ``timeout`` s); True if they are in use."""
-    _start_warm_up()
-    _warm_done.wait(timeout)
-    return _kern is not None
-
-
-def use_kernels(flag: bool | None) -> None:
-    """Force the compiled kernels (True: waits for the compile), the numpy reference (False),
-    or go back to the default (None: kernels as soon as they are warm)."""
-    global _mode
-    _mode = flag
-    if flag:
-        if not warm_up():
-            raise RuntimeError(f"compiled kernels unavailable: {_warm_error!r}")
-
-
-def _kernels_now():
-    """The kernels module if the solvers should use it for this call, else None."""
-    if _mode is False:
-        return None
-    if _mode is True and _kern is None:
-        warm_up()
-    return _kern
-
-
-def view_kernels_now():
-    """The selection's compiled projection and benefit kernels if they should be used now (as ``_kernels_now``)."""
-    return _view if _kernels_now() is not None else None
-
-
-_start_warm_up()
-if os.environ.get("WALKSTREAM_NUMBA", "") == "wait":
-    _mode = True

@@ -35,7 +35,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .candidates import NO_LIMIT, Limit
+from .candidates import NO_LIMIT, TimeLimit
 from .result import Result
 
 __all__ = ["Forest", "solve", "is_valid_cut", "coarsest_cut"]
@@ -179,7 +179,7 @@ def solve(
     forest: Forest,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     split_from: str = "any",
     check_every: int = 64,

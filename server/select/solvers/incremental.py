@@ -21,7 +21,7 @@ Increments follow each object's upper hull, so the answer matches
 greedy-from-scratch up to ties in value. The hull is rebuilt every frame
 (benefits change), so the coherent step costs the hull plus O(n) gathers.
 
-Compiled path (``_kernels``, once warm; the steps above stay as ``solve_numpy``, the
+Compiled path (``server.select.kernels``, once warm; the steps above stay as ``solve_numpy``, the
 reference): the same band in one pass. With θ known (last frame's; on a sample of 2048
 objects' hulls when missing and there are many objects) one pass builds each object's
 hull in registers, takes its increments above θ·(1 + w), writes its option, totals and
@@ -30,7 +30,7 @@ estimated θ); those are sorted and cut (the ones drawn last frame winning ties)
 fill rounds rebuild the hulls of the few objects they move. No (K, n) hull arrays are
 stored. If the cut does not stop inside the band, or without θ on few objects, the
 compiled full path runs instead: stored hulls and one radix cut of every increment
-(``_kernels.radix_cut``), exact wherever the threshold lies. stats["band"] counts the
+(``kernels.cut.radix_cut``), exact wherever the threshold lies. stats["band"] counts the
 objects with increments in the band (or in the radix cut's bin).
 """
 
@@ -38,8 +38,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import kernels
 from . import greedy
-from .candidates import NO_LIMIT, Candidates, Limit
+from .candidates import NO_LIMIT, Candidates, TimeLimit
 from .result import Result
 
 __all__ = ["solve", "start", "solve_numpy", "start_numpy"]
@@ -56,7 +57,7 @@ def start(cand: Candidates, hull: greedy.Hull) -> np.ndarray:
     A previous option off the hull (or over the budget) is clamped to the hull point
     below it; −1 or an invalid index starts the object undrawn.
     """
-    k_ = greedy._kernels_now()
+    k_ = kernels.compiled()
     if k_ is None:
         return start_numpy(cand, hull)
     return _start_compiled(k_, cand, hull)
@@ -67,8 +68,8 @@ def _start_compiled(k_, cand: Candidates, hull: greedy.Hull) -> np.ndarray:
     prev = np.asarray(cand.previous, np.int64)
     if prev.shape != (n,) or cand.k == 0:
         return np.zeros(n, np.int64)
-    return k_.start(greedy._c64(cand.cost), np.ascontiguousarray(cand.valid, bool), np.ascontiguousarray(prev),
-                    np.ascontiguousarray(hull.d_cost), np.ascontiguousarray(hull.count, np.int64))
+    return k_.hull.start(greedy._c64(cand.cost), np.ascontiguousarray(cand.valid, bool), np.ascontiguousarray(prev),
+                         np.ascontiguousarray(hull.d_cost), np.ascontiguousarray(hull.count, np.int64))
 
 
 def start_numpy(cand: Candidates, hull: greedy.Hull) -> np.ndarray:
@@ -94,7 +95,7 @@ def solve(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     fill_rounds: int = 64,
 ) -> Result:
@@ -109,7 +110,7 @@ def solve(
         r = greedy.solve(cand, budget, limit=limit, max_rounds=fill_rounds)
         r.stats["fallback"] = "no previous" if cand.previous is None else "empty"
         return r
-    k_ = greedy._kernels_now()
+    k_ = kernels.compiled()
     if k_ is None:
         return solve_numpy(cand, budget, limit=limit, state=state, fill_rounds=fill_rounds)
     prev = np.asarray(cand.previous, np.int64)
@@ -124,28 +125,29 @@ def solve(
     width = _BAND / 2  # last frame's threshold: benefits change by a few % a frame
     if theta is None and n >= _ESTIMATE_MIN:
         width = _BAND
-        theta = float(k_.estimate(b, c, valid, budget, budget, max(1, n // _SAMPLE)))
+        theta = float(k_.coherent.estimate(b, c, valid, budget, budget, max(1, n // _SAMPLE)))
         theta = theta if np.isfinite(theta) and theta > 0 else None
     if theta is None:
         return _solve_full(k_, cand, budget, prev, limit, fill_rounds)
-    sp = greedy._scratch(n, k, np.int16 if k < 2**15 else np.int64, k_.RADIX_BINS)
+    sp = greedy._scratch(n, k, np.int16 if k < 2**15 else np.int64, k_.hull.RADIX_BINS)
     steps, nxt_v, nxt_c, band_obj = sp["steps"], sp["nxt_v"], sp["nxt_c"], sp["ready"]
     level = np.empty(n, np.int64)
     acc = np.zeros(5)
-    settled, band, stop, best, spent = k_.coherent(b, c, valid, budget, prev, theta, width, budget, _KEEP, level,
-                                                   steps, nxt_v, nxt_c, sp["band_f"], sp["band_i"], acc)
+    settled, band, stop, best, spent = k_.coherent.coherent(b, c, valid, budget, prev, theta, width, budget, _KEEP,
+                                                            level, steps, nxt_v, nxt_c, sp["band_f"], sp["band_i"],
+                                                            acc)
     if not settled:
         r = _solve_full(k_, cand, budget, prev, limit, fill_rounds)
         r.stats.update(rounds=2, band=int(band), theta_missed=theta)
         return r
     remaining, rounds, stopped = budget - spent, 0, "done"
-    idx = band_obj[: k_.coherent_ready(nxt_v, nxt_c, remaining, band_obj)]
+    idx = band_obj[: k_.coherent.coherent_ready(nxt_v, nxt_c, remaining, band_obj)]
     while idx.size and rounds < fill_rounds:
         if limit.expired():
             stopped = "limit"
             break
-        idx, remaining, took = k_.coherent_fill_round(b, c, valid, budget, prev, steps, level, nxt_v, nxt_c, idx,
-                                                      remaining, acc)
+        idx, remaining, took = k_.coherent.coherent_fill_round(b, c, valid, budget, prev, steps, level, nxt_v,
+                                                               nxt_c, idx, remaining, acc)
         if took == 0:
             break
         rounds += 1
@@ -161,7 +163,7 @@ def solve(
         "threshold": float(stop) if np.isfinite(stop) and stop > 0 else None})
 
 
-def _solve_full(k_, cand: Candidates, budget: float, prev: np.ndarray, limit: Limit, fill_rounds: int,
+def _solve_full(k_, cand: Candidates, budget: float, prev: np.ndarray, limit: TimeLimit, fill_rounds: int,
                 expired: bool = False) -> Result:
     """The compiled path over stored hulls: one radix cut of every increment (or, ``expired``, the start
     clamped to the budget)."""
@@ -169,16 +171,16 @@ def _solve_full(k_, cand: Candidates, budget: float, prev: np.ndarray, limit: Li
     begin = hull.begin
     if expired:
         # Anytime: no time for the cut. The start, if over the budget, loses its lowest-value increments.
-        steps, _ = k_.clamp(begin, hull.value, hull.d_cost, hull.count, budget)
+        steps, _ = k_.cut.clamp(begin, hull.value, hull.d_cost, hull.count, budget)
         band, stop, rounds, filled, stopped = 0, -np.inf, 0, 0, "limit"
     else:
         steps = hull.steps
-        spent, band, stop, nr = k_.radix_cut(hull.value, hull.value.view(np.int64), hull.d_cost, hull.count, begin,
-                                             _KEEP, budget, hull.hist, hull.total, steps, hull.ready)
+        spent, band, stop, nr = k_.cut.radix_cut(hull.value, hull.value.view(np.int64), hull.d_cost, hull.count,
+                                                 begin, _KEEP, budget, hull.hist, hull.total, steps, hull.ready)
         rounds = 1
         filled, stopped = greedy._fill_compiled(k_, hull, steps, budget - spent, limit, fill_rounds, hull.ready[:nr])
     r = greedy._finish_compiled(k_, cand, budget, hull, steps, {
-        "stopped": stopped, "rounds": rounds, "moves": int(k_.moves(steps, begin)), "fill_rounds": filled,
+        "stopped": stopped, "rounds": rounds, "moves": int(k_.cut.moves(steps, begin)), "fill_rounds": filled,
         "band": int(band)})
     if np.isfinite(stop) and stop > 0:
         r.stats["threshold"] = float(stop)
@@ -189,7 +191,7 @@ def solve_numpy(
     cand: Candidates,
     budget: float,
     *,
-    limit: Limit = NO_LIMIT,
+    limit: TimeLimit = NO_LIMIT,
     state: dict | None = None,
     fill_rounds: int = 64,
 ) -> Result:

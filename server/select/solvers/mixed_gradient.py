@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .candidates import NO_LIMIT, Candidates, Limit
+from .candidates import NO_LIMIT, Candidates, TimeLimit
+from .mixed_problem import Smooth, discrete_increments, mixed_result
 from .result import Result
 
 __all__ = ["solve"]
@@ -32,8 +33,8 @@ def solve(
     cand: Candidates,
     budget: float,
     *,
-    smooth,
-    limit: Limit = NO_LIMIT,
+    smooth: Smooth,
+    limit: TimeLimit = NO_LIMIT,
     iterations: int = 10_000,
     barrier: float | None = None,
     x_floor: float = 1e-3,
@@ -43,15 +44,13 @@ def solve(
     barrier : ε of the barrier term, in benefit units (default 1e-9 × Σ weight)
     Result.stats: increments, activations, gradient_steps, iterations, stopped, discrete/continuous cost.
     """
-    from .mixed import _discrete_steps, _finish  # one source for the hull increments and the result
-
     budget = max(float(budget), 0.0)
     n, m, p = cand.n, smooth.m, float(smooth.power)
     w = np.asarray(smooth.weight, np.float64)
     s = np.asarray(smooth.slope, np.float64)
     f = np.asarray(smooth.fixed, np.float64)
     eps = float(barrier) if barrier is not None else 1e-9 * max(float(w.sum()), 1e-300)
-    obj, opt, d_b, d_c, value, chain = _discrete_steps(cand, budget)
+    obj, opt, d_b, d_c, value, chain = discrete_increments(cand, budget)
     live = np.ones(obj.size, bool)
     taken = np.zeros(obj.size, bool)
     spent_d = 0.0
@@ -129,4 +128,4 @@ def solve(
         else:
             break
     stats["stopped"] = stopped
-    return _finish(cand, budget, (obj, opt, chain, taken), (w, s, f, p), x, active, stats)
+    return mixed_result(cand, budget, (obj, opt, chain, taken), (w, s, f, p), x, active, stats)

@@ -9,30 +9,27 @@ more than the arithmetic. These kernels do it in one pass per box, and
 compute exactly what ``camera`` and ``benefit`` compute (same formulas, same
 order of operations; they stay the reference the tests compare with).
 
-Pure functions of arrays (no clock, no I/O). Compiled (or loaded from numba's
-cache) by ``warm_up``, which the solvers' warm-up thread calls after their own
-kernels (``solvers.greedy``); the selection uses them once that is done and the
-numpy path until then.
+Pure functions of arrays (no clock, no I/O), compiled with the solvers' kernels by
+``kernels.warm_up``; the selection uses them once that is done and the numpy path
+until then.
 """
 
 from __future__ import annotations
 
 import math
-import threading
 
-import numba
 import numpy as np
 
-from .solvers._kernels import _jit
+from ..benefit import BASE_ERROR, MIN_FACTOR
+from ..camera import SPEED_LIMIT_NDC
+from .jit import jit
 
-#: Must match ``camera.SPEED_LIMIT_NDC``, ``benefit.BASE_ERROR`` and ``benefit.MIN_FACTOR``.
-from .camera import SPEED_LIMIT_NDC  # noqa: E402
-from .benefit import BASE_ERROR, MIN_FACTOR  # noqa: E402
+__all__ = ["ACCURACY_OFF", "ACCURACY_FS", "ACCURACY_ZACH", "cull_any", "project", "benefit_sum", "compile_all"]
 
 ACCURACY_OFF, ACCURACY_FS, ACCURACY_ZACH = 0, 1, 2
 
 
-@_jit()
+@jit()
 def cull_any(lo, hi, planes, visible):
     """visible[i] = box i passes every plane of at least one camera; planes (C, 6, 4) (``camera.cull_boxes``)."""
     n, c = lo.shape[0], planes.shape[0]
@@ -40,7 +37,7 @@ def cull_any(lo, hi, planes, visible):
         visible[i] = _inside_any(lo, hi, i, planes, c)
 
 
-@_jit(inline="always")
+@jit(inline="always")
 def _inside(lo, hi, i, planes, j):
     for p in range(6):
         a, b, c, d = planes[j, p, 0], planes[j, p, 1], planes[j, p, 2], planes[j, p, 3]
@@ -52,7 +49,7 @@ def _inside(lo, hi, i, planes, j):
     return True
 
 
-@_jit(inline="always")
+@jit(inline="always")
 def _box_inside(lx, ly, lz, hx, hy, hz, pl):
     """``_inside`` for one box already in registers against one camera's (6, 4) planes."""
     for p in range(6):
@@ -65,7 +62,7 @@ def _box_inside(lx, ly, lz, hx, hy, hz, pl):
     return True
 
 
-@_jit(inline="always")
+@jit(inline="always")
 def _inside_any(lo, hi, i, planes, c):
     for j in range(c):
         if _inside(lo, hi, i, planes, j):
@@ -73,7 +70,7 @@ def _inside_any(lo, hi, i, planes, c):
     return False
 
 
-@_jit(inline="always")
+@jit(inline="always")
 def _centre(cx, cy, cz, m, limit):
     """NDC x, y of a point under clip matrix m, clamped to ±limit; behind the eye: on the clamp border."""
     x = cx * m[0, 0] + cy * m[0, 1] + cz * m[0, 2] + m[0, 3]
@@ -88,7 +85,7 @@ def _centre(cx, cy, cz, m, limit):
     return limit, limit
 
 
-@_jit()
+@jit()
 def project(lo, hi, rows, clips, planes, widths, heights, cull, before, has_before, size, offset, moved):
     """Per camera j and row i of ``rows``: screen size, centre offset and centre travel since ``before``.
 
@@ -180,7 +177,7 @@ def project(lo, hi, rows, clips, planes, widths, heights, cull, before, has_befo
                 moved[j, q] = 0.0
 
 
-@_jit(inline="always")
+@jit(inline="always")
 def _pow(x, m):
     if m == 1.0:
         return x
@@ -189,7 +186,7 @@ def _pow(x, m):
     return x**m
 
 
-@_jit()
+@jit()
 def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per_vertex, exponent, n_alg,
                 accuracy_mode, original, use_size, importance, focus_strength, motion_strength, frame_time, previous,
                 level_weight, algorithm_weight, out):
@@ -283,31 +280,6 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
         for k in range(kk):
             if not valid[i, k]:
                 out[i, k] = 0.0
-
-
-_warm_lock = threading.Lock()
-_warm_seconds: float | None = None
-
-
-def warm_up() -> float:
-    """Compile (or load from the cache) every kernel here; seconds taken. Idempotent and thread-safe."""
-    global _warm_seconds
-    import time
-
-    with _warm_lock:
-        if _warm_seconds is None:
-            t0 = time.perf_counter()
-            try:
-                compile_all()
-            except OSError:  # the cache numba chose cannot be read or written: compile in memory
-                from numba.core.caching import NullCache
-
-                for fn in list(globals().values()):
-                    if isinstance(fn, numba.core.registry.CPUDispatcher):
-                        fn._cache = NullCache()
-                compile_all()
-            _warm_seconds = time.perf_counter() - t0
-        return _warm_seconds
 
 
 def compile_all() -> None:
