@@ -26,7 +26,7 @@ from ..select.cost import FrameCostModel
 from ..select.morph import MorphScheduler, mark
 from ..select.selection import Interval, Memory, select
 from ..select.snapshot import dump_fields, load_fields
-from ..select.solvers.candidates import NO_LIMIT, Limit
+from ..select.solvers.candidates import NO_LIMIT, TimeLimit
 from .gate import through_gate
 from .mirror import CacheMirror
 from .table import SceneTable
@@ -114,7 +114,7 @@ class Pipeline:
         budget = max(hello.target_frame_time / tail - cost.overhead, 0.25 * hello.target_frame_time)
         # The only clock the selection sees: an anytime solver stops at select_limit with its best so far.
         began = 0.0 if stopwatch is None else stopwatch()
-        limit = NO_LIMIT if stopwatch is None else Limit(stopwatch, began + config.select_limit)
+        limit = NO_LIMIT if stopwatch is None else TimeLimit(stopwatch, began + config.select_limit)
         choice = select(self.scene, view, cost, budget, hello.solver, margin,
                         memory=self.memory, t=t0, limit=limit, factors=config.factors,
                         algorithms=self.algorithms, pixel_scale=self.pixel_scale)
