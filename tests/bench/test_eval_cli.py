@@ -12,7 +12,7 @@ from pathlib import Path
 
 def _walkstream(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "walkstream", *args], capture_output=True, text=True,
-                          timeout=timeout, cwd=Path(__file__).resolve().parents[1])
+                          timeout=timeout, cwd=Path(__file__).resolve().parents[2])
 
 
 def test_eval_writes_a_report_from_real_runs(demo_store, tmp_path) -> None:

@@ -26,7 +26,7 @@ from client.renderer import BACKGROUND
 from server.scene.store import SceneStore
 
 XVFB = shutil.which("Xvfb")
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 # --------------------------------------------------------------------------- fixtures

@@ -1,4 +1,4 @@
-"""LOD chains (levels, floor, savings) and their geometric error; geomorph maps are in test_morph.py."""
+"""LOD chains (levels, floor, savings) and their geometric error; geomorph maps are in test_morph_maps.py."""
 
 from __future__ import annotations
 

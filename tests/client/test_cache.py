@@ -14,7 +14,7 @@ from client.cache import ResidentCache
 from proto.geometry import encode_geometry
 from proto.messages import Delta, RepresentationAdd
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _payload(subdivisions: int) -> tuple[bytes, int, int]:

@@ -27,7 +27,7 @@ from proto.manifest import digest
 from proto.messages import Ack, Camera, Delta, FrameReport, Pong, RepresentationAdd
 from proto.points import encode_instances
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _mesh(n: int) -> bytes:

@@ -82,7 +82,7 @@ def test_point_model_fields():
 
 
 def test_ordering_of_many_points_is_a_permutation():
-    """(Its speed is measured in test_scene_perf.py.)"""
+    """(Its speed is measured in test_perf.py.)"""
     p = np.random.default_rng(0).normal(size=(100_000, 3))
     order = prefix_order(p)
     assert np.array_equal(np.sort(order), np.arange(100_000))

@@ -145,7 +145,7 @@ def test_instance_boxes_match_corners(boxes):
 
 
 def test_big_forest_places_and_groups(boxes):
-    """St. Helens' scale (its speed is measured in test_scene_perf.py)."""
+    """St. Helens' scale (its speed is measured in test_perf.py)."""
     g = _grid(rows=2049, spacing=58.6)
     trees = forest(g, 1_400_000, seed=0, models=len(boxes))
     groups = group_trees(trees, [4096] * len(boxes), model_boxes=boxes)
