@@ -43,8 +43,8 @@ class FrameCostModel(Protocol):
     """What a session asks of a cost model: fold in measured frames, price a selection, be saved and restored.
 
     ``CostModel`` (Zach's running c_vertex) and ``cost_online.OnlineCostModel``
-    (F&S's terms fitted online) both implement it; the selection itself reads
-    ``predict`` / ``predict_terms`` / ``splat_cost`` (``selection``).
+    (F&S's terms fitted online) both implement it; the selection prices options
+    with ``predict_terms`` and splats with ``splat_cost`` (``options``, ``selection``).
     """
 
     #: Frames shorter than this (measured and predicted) are light: the session sets a share of its target.
@@ -67,6 +67,14 @@ class FrameCostModel(Protocol):
         ...
 
     def predict(self, vertices) -> np.ndarray: ...
+
+    def predict_terms(self, faces, vertices, pixels, algorithm=0, draws=1.0) -> np.ndarray:
+        """Seconds per (object, level, algorithm) tuple, F&S's terms, without the frame overhead."""
+        ...
+
+    def splat_cost(self, splats) -> np.ndarray:
+        """Seconds to draw that many point splats."""
+        ...
 
     def observe_frame(self, time: float, vertices: int, terms: FrameTerms | None = None, splats: int = 0) -> bool:
         """Fold in one measured frame (its per-algorithm ``terms`` when the client reported them)."""
@@ -135,6 +143,10 @@ class CostModel:
     def predict(self, vertices: np.ndarray) -> np.ndarray:
         """Seconds to draw representations with ``vertices`` vertices; shape follows the input."""
         return self.c_vertex * np.asarray(vertices, np.float64)
+
+    def splat_cost(self, splats: np.ndarray) -> np.ndarray:
+        """Seconds for that many splats: a splat is priced as a vertex (Zach's model has no term of its own)."""
+        return self.predict(splats)
 
     def update(self, time: float, vertices: int) -> bool:
         """Fold in one measured frame; returns whether it was used."""

@@ -59,11 +59,8 @@ def option_arrays(lv, rows: np.ndarray, algorithms: int = 1):
 
 
 def _tuple_cost(cost_model, faces, vertices, pixels, algorithm):
-    """(v, K) seconds per option: the model's F&S terms where it has them, else c_vertex · vertices."""
-    terms = getattr(cost_model, "predict_terms", None)
-    if terms is None:
-        return cost_model.predict(vertices)
-    return terms(faces, vertices, pixels, algorithm, 1.0)
+    """(v, K) seconds per option: the model's F&S terms, one draw each."""
+    return cost_model.predict_terms(faces, vertices, pixels, algorithm, 1.0)
 
 
 def _view_kernels():

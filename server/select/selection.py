@@ -347,8 +347,7 @@ def _smooth(scene, cams, cost_model):
     if scene.importance is not None and veg.object_class is not None:
         weight = weight * scene.importance[veg.object_class[rows]]
     points = veg.rep_vertices[veg.rep_first[rows] + veg.rep_count[rows] - 1]
-    price = getattr(cost_model, "splat_cost", cost_model.predict)  # the fitted model prices splats itself
-    slope = np.maximum(price(points), 1e-12)
+    slope = np.maximum(cost_model.splat_cost(points), 1e-12)
     return Smooth.of(weight, slope), rows
 
 
