@@ -11,6 +11,7 @@ order meshoptimizer's codecs exploit.
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -105,8 +106,11 @@ def wire(path: Path, keys: int | None = 30) -> dict:
 
     from proto.codec import COMPRESS_ABOVE, decode_server, encode
     from proto.messages import Camera, Delta, Hello, Pong
+    from server.select import kernels
     from server.session import Session, SessionConfig
 
+    # Select with the compiled kernels, as a server does from its start (it waits for them too).
+    kernels.warm_up(setting=os.environ.get("WALKSTREAM_NUMBA"))
     with SceneStore.open(path) as store:
         idx = store.index
         verts = np.asarray(idx.rep_vertices, np.int64)
