@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .hull import RADIX_BINS, hull, radix_bin
+from .hull import hull, radix_bin, warm_up_inputs
 from .jit import jit
 
 __all__ = ["radix_cut", "ready", "fill_round", "finish", "moves", "clamp", "compile_all"]
@@ -242,14 +242,8 @@ def clamp(begin, value, d_cost, count, capacity):
 
 def compile_all() -> None:
     """Call every kernel here once, with the argument types the solvers pass (on hulls from ``hull``)."""
-    b = np.array([[1.0, 1.5], [2.0, 2.2], [1.0, 0.5]])
-    c = np.array([[1.0, 3.0], [1.0, 2.0], [2.0, 1.0]])
-    ok = np.ones(b.shape, bool)
-    k, n = 2, 3
-    for opt_dtype in (np.int16, np.int64):
-        value, d_cost = np.empty((k, n)), np.empty((k, n))
-        opt, count = np.empty((k, n), opt_dtype), np.empty(n, np.int64)
-        begin, hist = np.empty(n, np.int64), np.empty(RADIX_BINS)
+    for b, c, ok, value, d_cost, opt, count, begin, hist in warm_up_inputs():
+        n = count.size
         _, total = hull(b, c, ok.view(np.uint8), np.inf, np.array([0, 1, -1]), value, value.view(np.int64),
                         d_cost, opt, count, begin, hist)
         steps, ready_ = np.empty(n, np.int64), np.empty(n, np.int64)

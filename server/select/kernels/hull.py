@@ -26,7 +26,7 @@ import numpy as np
 from .jit import jit
 
 __all__ = ["RADIX_BITS", "RADIX_OCTAVES", "RADIX_SHIFT", "RADIX_LOW", "RADIX_BINS", "radix_bin", "hull",
-           "start", "object_hull", "compile_all"]
+           "start", "object_hull", "warm_up_inputs", "compile_all"]
 
 
 #: Radix bins of an increment's value: the float64 bit pattern's exponent and top RADIX_BITS mantissa
@@ -241,8 +241,9 @@ def object_hull(benefit, cost, valid, cap, i, order, sc, sb, ss, so):
     return top, best_o, best_b
 
 
-def compile_all() -> None:
-    """Call every kernel here once, with the argument types the solvers pass."""
+def warm_up_inputs():
+    """A tiny instance and empty hull arrays, once per option dtype the solvers use: what the compile
+    passes of this module and of ``cut`` call their kernels with."""
     b = np.array([[1.0, 1.5], [2.0, 2.2], [1.0, 0.5]])
     c = np.array([[1.0, 3.0], [1.0, 2.0], [2.0, 1.0]])
     ok = np.ones(b.shape, bool)
@@ -251,6 +252,12 @@ def compile_all() -> None:
         value, d_cost = np.empty((k, n)), np.empty((k, n))
         opt, count = np.empty((k, n), opt_dtype), np.empty(n, np.int64)
         begin, hist = np.empty(n, np.int64), np.empty(RADIX_BINS)
+        yield b, c, ok, value, d_cost, opt, count, begin, hist
+
+
+def compile_all() -> None:
+    """Call every kernel here once, with the argument types the solvers pass."""
+    for b, c, ok, value, d_cost, opt, count, begin, hist in warm_up_inputs():
         for prev, h in ((np.array([0, 1, -1]), hist), (np.empty(0, np.int64), np.empty(0))):
             hull(b, c, ok.view(np.uint8), np.inf, prev, value, value.view(np.int64), d_cost, opt, count, begin, h)
         start(c, ok, np.array([0, 1, -1]), d_cost, count)
