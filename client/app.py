@@ -65,6 +65,7 @@ def run_client(
     reconnect_timeout: float = 10.0,
     silence_timeout: float | None = 10.0,
     tour: "Sequence[dict] | None" = None,
+    governor: bool = True,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
@@ -124,7 +125,7 @@ def run_client(
         hello = Hello(
             protocol=PROTOCOL_VERSION, scene=scene, viewport=[width, height], fov_y=fov_y,
             target_frame_time=target_frame_time, solver=solver, client=CLIENT_NAME, predict=predict, morph=morph,
-            algorithms=list(algorithms), cache_bytes=cache_bytes, **limits,
+            algorithms=list(algorithms), cache_bytes=cache_bytes, governor=governor, **limits,
         )
         ws, welcome, nbytes, attempts = open_patiently(url, hello, timeout, max(0.0, reconnect_timeout))
         link = Link(url, hello, start, timeout=timeout, patience=reconnect_timeout, silence=silence_timeout)

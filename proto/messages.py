@@ -144,6 +144,9 @@ class Hello(_Message):
     #: What the client already holds: ``proto.manifest.pack_held`` of its representation ids (a zlib'd bitset).
     #: The server's mirror starts from it, so nothing held is sent again — on a resume or a fresh session.
     held: Annotated[bytes, Field(max_length=MAX_HELD_BYTES)] | None = None
+    #: The client corrects the server's selection every frame along the delta's ladder (a frame governor);
+    #: the server then budgets the mean frame rather than the tail.
+    governor: bool = False
 
     @model_validator(mode="after")
     def _distinct(self) -> "Hello":
