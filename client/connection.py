@@ -98,6 +98,27 @@ def _as_error(exc: ProtocolError, what: str) -> Error:
     return Error(code=exc.code, message=f"{what}: {exc.message}"[:4096])
 
 
+def check_url(url: str) -> str:
+    """``url`` if it can name a walkstream endpoint, else ``ClientError`` saying what is wrong with it."""
+    try:
+        parts = urlsplit(url)
+        port = parts.port
+    except ValueError as exc:
+        raise ClientError(f"bad URL {url!r}: {exc}") from None
+    if parts.scheme not in ("ws", "wss"):
+        hint = f"; try {urlunsplit(parts._replace(scheme='ws' if parts.scheme != 'https' else 'wss'))!r}" \
+            if parts.scheme in ("http", "https") else ""
+        raise ClientError(f"bad URL {url!r}: the scheme must be ws:// or wss://{hint}")
+    if not parts.hostname:
+        raise ClientError(f"bad URL {url!r}: it names no host")
+    if port == 0:
+        raise ClientError(f"bad URL {url!r}: port 0 cannot be connected to")
+    if not parts.path.rstrip("/").endswith("/ws"):
+        fixed = urlunsplit(parts._replace(path=parts.path.rstrip("/") + "/ws"))
+        raise ClientError(f"bad URL {url!r}: the server's websocket is at /ws; try {fixed!r}")
+    return url
+
+
 def with_client(url: str, client_id: str) -> str:
     """``url`` with ``client=<id>`` in its query (replacing any), for a load balancer's ``hash $arg_client``."""
     parts = urlsplit(url)

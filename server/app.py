@@ -17,6 +17,7 @@ client that lost its connection can resume on any replica sharing the store.
 from __future__ import annotations
 
 import asyncio
+import errno
 import hmac
 import logging
 import os
@@ -472,6 +473,25 @@ def check_state_url(url: str, timeout: float = 3.0) -> None:
         client.close()
 
 
+def bind_listener(host: str, port: int, send_buffer: int | None = None) -> socket.socket:
+    """A listening TCP socket on ``host:port``; ``ServeError`` naming the address if it cannot be had."""
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if send_buffer is not None:  # accepted connections inherit it (and lose autotuning)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, send_buffer)
+        sock.bind((host, port))
+        sock.listen(128)  # connections queue in the backlog until uvicorn accepts them
+    except (OSError, UnicodeError) as exc:
+        sock.close()
+        why = "the port is in use" if getattr(exc, "errno", None) == errno.EADDRINUSE else str(exc)
+        raise ServeError(f"cannot listen on {host}:{port}: {why}") from None
+    except OverflowError:
+        sock.close()
+        raise ServeError(f"cannot listen on {host}:{port}: the port must lie in 0..65535") from None
+    return sock
+
+
 def serve(
     paths: list[Path],
     host: str = "127.0.0.1",
@@ -495,7 +515,18 @@ def serve(
         raise ServeError(str(exc)) from None
     if not isinstance(state, MemoryStateStore):
         check_state_url(state_url)
-    scenes = load_scenes(paths)
+    # The port first: a port in use is the user's to fix, and they should not wait for the stores and kernels
+    # to learn it.
+    sock = bind_listener(host, port, limits.send_buffer)
+    bound = sock.getsockname()[1]
+    try:
+        scenes = load_scenes(paths)
+    except ValueError as exc:
+        sock.close()
+        raise ServeError(str(exc)) from None
+    except BaseException:
+        sock.close()
+        raise
     # Selections switch from the numpy reference to the compiled kernels once those are ready; doing that
     # mid-session could flip a tie and morph an object for nothing, so sessions start only after it (the
     # bootstrap fills numba's cache, from which it is quick). WALKSTREAM_NUMBA=0 keeps the kernels off.
@@ -504,13 +535,6 @@ def serve(
     began = time.perf_counter()
     compiled = kernels.warm_up(timeout=300, setting=os.environ.get("WALKSTREAM_NUMBA"))
     log.info("selection kernels: %s after %.1f s", "numba" if compiled else "numpy", time.perf_counter() - began)
-    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    if limits.send_buffer is not None:  # accepted connections inherit it (and lose autotuning)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, limits.send_buffer)
-    sock.bind((host, port))
-    sock.listen(128)  # connections queue in the backlog until uvicorn accepts them
-    bound = sock.getsockname()[1]
     app = create_app(scenes, config, state=state, limits=limits, admin_token=admin_token,
                      replica=replica or f"{socket.gethostname()}:{bound}")
     announce(f"walkstream: serving {', '.join(sorted(scenes))} on http://{host}:{bound} (websocket /ws)")

@@ -47,6 +47,12 @@ def stderr_console():
     return Console(stderr=True)
 
 
+def fail(message: str) -> None:
+    """End the command with one line on stderr and exit status 2 (a user's error: no traceback)."""
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(2)
+
+
 def check_solver(name: str) -> None:
     """Refuse an unknown solver before connecting (the server would refuse it in its welcome)."""
     from server.select.solvers import SOLVERS
@@ -69,8 +75,10 @@ def build(
     seed: int = typer.Option(0, help="random seed of a named scene (same seed, same scene)"),
     workers: Optional[int] = typer.Option(None, help="worker processes (default: one per CPU)"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
+    force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT (atomically, once the build "
+                               "completes)"),
 ) -> None:
-    """Build a scene store. The store appears only when the build completes."""
+    """Build a scene store. The store appears only when the build completes; an existing one is kept unless --force."""
     from server.scene.catalog import build_named, build_path, is_named
     from server.scene.source import SourceError
     from server.scene.store import StoreError
@@ -87,8 +95,16 @@ def build(
         raise typer.BadParameter(
             f"{source!r} is neither a named scene (demo, auditorium, denhaag, sthelens, megacity) nor an existing file",
             param_hint="SOURCE")
+    if not named and Path(source).is_dir():
+        fail(f"{source!r} is a directory; give one scene file (CityJSON, glTF/GLB, OBJ, PLY, DEM, .npz, CityGML)")
     if output is None:
         output = Path(f"{source if named else Path(source).name.split('.')[0]}.db")
+    if not named and output.resolve() == Path(source).resolve():
+        fail(f"output {str(output)!r} is the input: the build would overwrite it; choose another -o")
+    if output.is_dir():
+        fail(f"output {str(output)!r} is a directory; give the store's file name")
+    if output.exists() and not force:
+        fail(f"output {str(output)!r} exists; add --force to replace it")
     output.parent.mkdir(parents=True, exist_ok=True)
     bar, tick = progress_bar(f"building {source if named else Path(source).name}", quiet)
     try:
@@ -158,6 +174,11 @@ def serve(
     missing = [str(p) for p in stores if not p.exists()]
     if missing:
         raise typer.BadParameter(f"no such store: {', '.join(missing)}", param_hint="STORES")
+    seen: set[Path] = set()
+    for p in stores:
+        if p.resolve() in seen:
+            fail(f"store {str(p)!r} is given twice")
+        seen.add(p.resolve())
     if not 0.05 <= tau <= 10:
         raise typer.BadParameter("τ must lie in [0.05, 10] seconds", param_hint="--tau")
     if not 1e-12 <= c_vertex <= 1e-3:
@@ -177,5 +198,4 @@ def serve(
                    announce=lambda s: print(s, flush=True), limits=limits, state_url=redis or None,
                    admin_token=admin_token or None, replica=replica)
     except (StoreError, ServeError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+        fail(str(exc))

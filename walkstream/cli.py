@@ -22,6 +22,7 @@ from server.cli import SOLVER_HELP, check_solver
 
 app = typer.Typer(
     add_completion=False,
+    pretty_exceptions_enable=False,
     no_args_is_help=True,
     help="walkstream: streamed walkthroughs that hold the frame rate you ask for.",
 )
@@ -50,10 +51,14 @@ def client(
 ) -> None:
     """Run the client over the scene's tour (headless, or in a window you can navigate) and print its frame times."""
     from client.app import run_client
-    from client.connection import ClientError
+    from client.connection import ClientError, check_url
     from client.window import WindowError
 
     check_solver(solver)
+    try:
+        check_url(url)
+    except ClientError as exc:
+        server_cli.fail(str(exc))
     if navigate != "tour" and not window:
         raise typer.BadParameter("fly and walk are driven by keys and mouse: add --window", param_hint="--navigate")
     if duration is None:
@@ -83,8 +88,23 @@ app.command("eval")(bench_cli.eval_)
 app.add_typer(bench_cli.bench_app, name="bench")
 
 
-def main() -> None:
-    app()
+def main(argv: list[str] | None = None) -> None:
+    """Run the command line; an unexpected failure is one line and exit status 2 unless ``--debug`` is given."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in args
+    if debug:
+        args.remove("--debug")
+    try:
+        app(args=args, prog_name="walkstream", standalone_mode=True)
+    except SystemExit:
+        raise
+    except KeyboardInterrupt:
+        raise SystemExit(130) from None
+    except Exception as exc:
+        if debug:
+            raise
+        typer.echo(f"error: {type(exc).__name__}: {exc} (run with --debug for the traceback)", err=True)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

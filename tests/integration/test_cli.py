@@ -72,3 +72,63 @@ def test_bench_build_reports_figures_against_its_reference(tmp_path):
     assert scene["store_bytes"] == (tmp_path / "auditorium.db").stat().st_size
     assert scene["triangles_per_s"] == pytest.approx(scene["triangles"] / scene["build_s"], rel=0.01)
     assert 0 < scene["index_load_s"] < 5 and scene["ratio_to_simplifier"] > 0
+
+
+def _one_line_error(done: subprocess.CompletedProcess, *names: str) -> str:
+    """The run failed as a user's error: status 2, one line on stderr naming each of ``names``, no traceback."""
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2, (done.returncode, done.stderr)
+    assert len(lines) == 1 and lines[0].startswith("error: "), done.stderr
+    assert "Traceback" not in done.stderr
+    for name in names:
+        assert name in lines[0], (name, lines[0])
+    return lines[0]
+
+
+def test_build_never_overwrites_its_input_nor_a_store_without_force(tmp_path, demo_store):
+    city = tmp_path / "self.city.json"
+    city.write_text('{"type": "CityJSON"}')
+    _one_line_error(_walkstream("build", str(city), "-o", str(city)), str(city), "is the input")
+    assert city.read_text() == '{"type": "CityJSON"}'
+    _one_line_error(_walkstream("build", str(tmp_path)), str(tmp_path), "directory")
+    existing = tmp_path / "kept.db"
+    existing.write_bytes(b"mine")
+    _one_line_error(_walkstream("build", "demo", "--objects", "4", "-o", str(existing)), str(existing), "--force")
+    assert existing.read_bytes() == b"mine"
+    done = _walkstream("build", "demo", "--objects", "4", "-q", "-o", str(existing), "--force")
+    assert done.returncode == 0, done.stderr
+    with SceneStore.open(existing) as store:
+        assert store.index.n_objects >= 4
+
+
+def test_serve_errors_are_one_line_and_the_port_is_checked_first(tmp_path, demo_store):
+    import socket
+
+    not_a_store = tmp_path / "text.db"
+    not_a_store.write_text("hello")
+    holder = socket.socket()
+    holder.bind(("127.0.0.1", 0))
+    holder.listen()
+    port = holder.getsockname()[1]
+    try:
+        busy = _walkstream("serve", str(demo_store), "--port", str(port))
+        # Checked before any store is opened: the broken store is never reached.
+        busy_broken = _walkstream("serve", str(not_a_store), "--port", str(port))
+    finally:
+        holder.close()
+    _one_line_error(busy, f"127.0.0.1:{port}", "in use")
+    _one_line_error(busy_broken, f"127.0.0.1:{port}", "in use")
+    _one_line_error(_walkstream("serve", str(demo_store), str(demo_store)), str(demo_store), "twice")
+    other = tmp_path / "copy.db"
+    other.write_bytes(demo_store.read_bytes())
+    _one_line_error(_walkstream("serve", str(demo_store), str(other), "--port", "0"), "'demo'", str(other))
+
+
+@pytest.mark.parametrize("url, names", [
+    ("ws://127.0.0.1:99999/ws", ["ws://127.0.0.1:99999/ws", "Port out of range"]),
+    ("ws://[::1", ["ws://[::1", "IPv6"]),
+    ("ws://127.0.0.1:8765/", ["ws://127.0.0.1:8765/", "/ws", "try 'ws://127.0.0.1:8765/ws'"]),
+    ("http://127.0.0.1:8765/ws", ["http://127.0.0.1:8765/ws", "ws://"]),
+])
+def test_client_refuses_a_bad_url_in_one_line(url, names):
+    _one_line_error(_walkstream("client", url, "--duration", "1"), *names)
