@@ -226,7 +226,11 @@ class Cluster:
 
     def _start_replicas(self, stores: list[Path], n: int, tau: float, extra: list[str], timeout: float) -> None:
         def start(i: int) -> ServerProcess:
-            return ServerProcess(stores, extra=["--tau", str(tau), *extra], admin_token=self.admin_token,
+            # nginx (on loopback) names each client in X-Real-IP, and the replicas trust it; every simulated
+            # client is on loopback too, so one address may hold as many connections as the cluster serves.
+            return ServerProcess(stores, extra=["--tau", str(tau), "--trusted-proxy", "127.0.0.1",
+                                                "--max-per-address", "100000", *extra],
+                                 admin_token=self.admin_token,
                                  redis=self.redis_url, replica=f"r{i}")
 
         with ThreadPoolExecutor(n) as pool:  # they import and open stores in parallel

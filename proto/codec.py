@@ -82,6 +82,23 @@ def _clip(name: str) -> str:
     return name if len(name) <= _MAX_LOC else name[:_MAX_LOC] + "…"
 
 
+def _undecodable(data, exc: Exception, from_client: bool) -> str:
+    """Why a frame is not msgpack, in words a peer's developer can act on (msgpack's own are often empty)."""
+    name = type(exc).__name__
+    if from_client and bytes(data[:4]) == ZSTD_MAGIC:
+        return "compressed frames are not accepted: send plain msgpack (only the server compresses)"
+    if name == "StackError":
+        return "frame does not decode: it nests maps or arrays too deeply"
+    if name == "ExtraData":
+        return "frame does not decode: bytes follow the first msgpack object (one message per frame)"
+    if not data:
+        return "frame does not decode: it is empty"
+    detail = str(exc).strip()
+    if name == "FormatError" or not detail:
+        return f"frame does not decode: it is not msgpack (starts with bytes {bytes(data[:8]).hex(' ')})"
+    return f"frame does not decode: {name}: {detail}"
+
+
 def decode(data: bytes, types: Mapping[str, type[BaseModel]], max_size: int) -> BaseModel:
     """Decode one frame into a message of one of ``types``; refuse with ``ProtocolError``."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
@@ -100,7 +117,7 @@ def decode(data: bytes, types: Mapping[str, type[BaseModel]], max_size: int) -> 
             max_ext_len=0,
         )
     except Exception as exc:  # ExtraData, FormatError, StackError, ValueError, UnicodeDecodeError ...
-        raise ProtocolError("bad_msgpack", f"frame does not decode: {type(exc).__name__}: {exc}"[:300]) from None
+        raise ProtocolError("bad_msgpack", _undecodable(data, exc, types is CLIENT_TYPES)[:300]) from None
     if not isinstance(obj, dict):
         raise ProtocolError("invalid", f"a message is a map with a 'type' field, got {type(obj).__name__}")
     kind = obj.get("type")

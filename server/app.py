@@ -17,7 +17,6 @@ client that lost its connection can resume on any replica sharing the store.
 from __future__ import annotations
 
 import asyncio
-import errno
 import hmac
 import logging
 import os
@@ -36,10 +35,12 @@ from proto.codec import decode_client, encode
 from proto.errors import ERROR_CODES, ProtocolError
 from proto.messages import Delta, Error, Hello, Resume
 
-from .limits import WS_MAX_SIZE, ReplicaLimits, RateGuard
+from .fair import FairPool
+from .limits import MEASUREMENT_SOLVERS, WS_MAX_SIZE, ReplicaLimits, RateGuard, remote_address
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .scene.store import SceneStore
 from .session import Session, SessionConfig, SessionState
+from .startup import ServeError, bind_listener, check_state_url, load_scenes
 from .state import MemoryStateStore, StateStore, open_state_store
 
 __all__ = ["create_app", "load_scenes", "serve", "ServeError", "WS_MAX_SIZE"]
@@ -55,22 +56,6 @@ CLOSE_NORMAL, CLOSE_POLICY, CLOSE_RESTART, CLOSE_BUSY = 1000, 1008, 1012, 1013
 _SOCKET_GONE = (WebSocketDisconnect, RuntimeError, OSError)
 
 
-class ServeError(RuntimeError):
-    """The server cannot start as asked (e.g. its state store is unreachable)."""
-
-
-def load_scenes(paths: list[Path]) -> dict[str, SceneStore]:
-    """Open scene stores by path; each is served under the name recorded in it."""
-    scenes: dict[str, SceneStore] = {}
-    for path in paths:
-        store = SceneStore.open(path)
-        name = store.index.name
-        if name in scenes:
-            raise ValueError(f"two stores name their scene {name!r}: {path} and another")
-        scenes[name] = store
-    return scenes
-
-
 def _error(code: str, detail: str = "") -> Error:
     return Error(code=code, message=detail or ERROR_CODES[code])
 
@@ -78,10 +63,14 @@ def _error(code: str, detail: str = "") -> Error:
 class _Connection:
     """One websocket's session and the loop's controls: its inbox, a close request, when it was last heard."""
 
-    def __init__(self, ws: WebSocket, session: Session, now: float) -> None:
+    def __init__(self, ws: WebSocket, session: Session, now: float, address: str = "unknown") -> None:
         self.ws = ws
         self.session = session
+        self.address = address
         self.inbox: asyncio.Queue = asyncio.Queue(maxsize=256)
+        self.inbox_bytes = 0  # bytes of the frames waiting in ``inbox``
+        self.drained = asyncio.Event()  # set when the loop takes a frame out: the reader may queue again
+        self.bad_frames = 0
         self.closing: tuple[str, int, str] | None = None  # (error code, close code, message)
         self.done = asyncio.Event()
         self.last_heard = now
@@ -89,6 +78,7 @@ class _Connection:
         self.opened = now
         self.send_since: float | None = None  # when the pending send began (None: not sending)
         self.resumed = False
+        self.refused_resume: str | None = None  # the scene of a session this connection could not resume into
         self.gone = False  # the reader saw the socket end but could not queue that
 
     def request_close(self, code: str, close_code: int, message: str = "") -> None:
@@ -107,6 +97,8 @@ class _Connection:
             stats = {"session": self.session.id, "state": self.session.state.value}
         return {
             **stats,
+            "address": self.address,
+            "bad_frames": self.bad_frames,
             "resumed": self.resumed,
             "connected_s": round(now - self.opened, 3),
             "idle_s": round(now - self.last_heard, 3),
@@ -135,7 +127,14 @@ def create_app(
     conns: dict[str, _Connection] = {}
     sessions: dict[str, Session] = {}  # the same, by session (tests and /sessions look here)
     metrics = Metrics(lambda: len(conns))
+    per_address: dict[str, int] = {}  # open connections by remote address
+
+    def n_sessions() -> int:
+        """Connections that said their hello: the ones holding a session slot."""
+        return sum(1 for c in conns.values() if c.session.state is not SessionState.AWAIT_HELLO)
     pool = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="walkstream-select")
+    # Selections, fairly: a session that spends more CPU than its neighbours waits behind them.
+    fair = FairPool(limits.workers, name="walkstream-fair")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -145,6 +144,7 @@ def create_app(
             for conn in list(conns.values()):
                 # Not "closed" (an administrator's end of the session): a client redials and resumes elsewhere.
                 conn.request_close("busy", CLOSE_RESTART, "the server is shutting down; reconnect to resume")
+            fair.shutdown()
             pool.shutdown(wait=True, cancel_futures=True)
             try:
                 await store.close()
@@ -153,13 +153,17 @@ def create_app(
             for s in scenes.values():
                 s.close()
 
-    app = FastAPI(title="walkstream", version="0.2.0", lifespan=lifespan)
+    # The interactive docs would load their page from a public CDN: off unless asked for.
+    docs = limits.docs
+    app = FastAPI(title="walkstream", version="0.2.0", lifespan=lifespan, docs_url="/docs" if docs else None,
+                  redoc_url=None, openapi_url="/openapi.json" if docs else None)
     app.state.sessions = sessions
     app.state.connections = conns
     app.state.metrics = metrics
     app.state.limits = limits
     app.state.store = store
     app.state.pool = pool
+    app.state.fair = fair
 
     def register(conn: _Connection) -> None:
         conns[conn.session.id] = conn
@@ -185,8 +189,9 @@ def create_app(
 
     @app.get("/health")
     async def health() -> dict:
-        return {"status": "ok", "replica": replica, "sessions": len(conns), "max_sessions": limits.max_sessions,
-                "scenes": sorted(scenes)}
+        sessions_now = n_sessions()
+        return {"status": "ok", "replica": replica, "sessions": sessions_now, "connections": len(conns),
+                "pending": len(conns) - sessions_now, "max_sessions": limits.max_sessions, "scenes": sorted(scenes)}
 
     @app.get("/scenes")
     async def list_scenes() -> list[dict]:
@@ -199,7 +204,8 @@ def create_app(
                     "name": name,
                     "objects": int(idx.n_objects),
                     "representations": int(idx.n_representations),
-                    "triangles_full_detail": int(idx.rep_faces[last].sum()),
+                    # As ``walkstream inspect`` counts: the scene's own objects, not the HLOD proxies over them.
+                    "triangles_full_detail": int(idx.rep_faces[last[idx.flat]].sum()),
                     "bounds": idx.bounds.tolist(),
                     "tour_seconds": float(idx.tour[-1]["t"]) if idx.tour else 0.0,
                 }
@@ -210,12 +216,13 @@ def create_app(
     async def prometheus() -> Response:
         return Response(metrics.render(), media_type=CONTENT_TYPE_LATEST)
 
-    @app.get("/sessions", dependencies=[Depends(require_admin)])
+    @app.get("/sessions", dependencies=[Depends(require_admin)], include_in_schema=False)
     async def list_sessions() -> list[dict]:
         now = time.monotonic()
-        return [c.info(now) for c in conns.values()]
+        return [{**c.info(now), "selection_cpu_s": round(fair.total(c.session.id), 4),
+                 "selection_cpu_recent_s": round(fair.spent(c.session.id), 4)} for c in conns.values()]
 
-    @app.delete("/sessions/{session_id}", dependencies=[Depends(require_admin)])
+    @app.delete("/sessions/{session_id}", dependencies=[Depends(require_admin)], include_in_schema=False)
     async def close_session(session_id: str) -> dict:
         conn = conns.get(session_id)
         if conn is None:
@@ -242,8 +249,9 @@ def create_app(
             metrics.state_failures.labels("save").inc()
             log.warning("saving session %s failed: %s", session.id, exc)
 
-    async def resume(conn: _Connection, ask: Resume) -> str:
-        """Take over session ``ask.session`` if the store has it and the token matches; returns the outcome."""
+    async def resume(conn: _Connection, ask: Resume, scene: str) -> str:
+        """Take over session ``ask.session`` if the store has it, the token matches and it is of ``scene``;
+        returns the outcome (``other_scene``: refused, and the saved state is left as it was)."""
         try:
             found = await store.load(ask.session)
         except Exception as exc:
@@ -254,6 +262,18 @@ def create_app(
             return "not_found"
         if not hmac.compare_digest(found[0].encode(), ask.token.encode()):
             return "bad_token"
+        loop = asyncio.get_running_loop()
+        probe = Session(scenes, ask.session, config, stopwatch=stopwatch)
+        try:
+            await loop.run_in_executor(pool, probe.restore, found[1])
+        except ValueError:
+            pass  # the restore below says so, and starts afresh
+        else:
+            if probe.restored_scene != scene:
+                conn.refused_resume = probe.restored_scene
+                return "other_scene"
+        finally:
+            probe.close()
         old = conns.get(ask.session)
         if old is not None and old is not conn:
             # The old connection is not yet noticed as dead: end it, and take the state it saves on leaving.
@@ -268,7 +288,6 @@ def create_app(
         # the old owner's late saves — under the old token — no longer overwrite this session's state.
         session = Session(scenes, ask.session, config, stopwatch=stopwatch)
         session.fence = found[0]
-        loop = asyncio.get_running_loop()
         try:
             await loop.run_in_executor(pool, session.restore, found[1])
         except ValueError as exc:
@@ -282,22 +301,47 @@ def create_app(
 
     # ------------------------------------------------------------------ websocket
 
+    @app.get("/ws", include_in_schema=False)
+    async def ws_over_http() -> Response:
+        """A plain HTTP GET of the websocket's path: say what it is rather than 404."""
+        return Response("this is walkstream's websocket endpoint: connect with a websocket client "
+                        "(ws:// or wss://), e.g. `walkstream client ws://HOST:PORT/ws`\n",
+                        status_code=426, headers={"Upgrade": "websocket"}, media_type="text/plain")
+
+    async def refuse(ws: WebSocket, reason: str, code: str, close_code: int, message: str) -> None:
+        metrics.refused.labels(reason).inc()
+        metrics.errors.labels(code).inc()
+        try:
+            await ws.send_bytes(encode(_error(code, message)))
+            await ws.close(close_code)
+        except _SOCKET_GONE:
+            pass
+
     @app.websocket("/ws")
     async def ws_endpoint(ws: WebSocket) -> None:
+        address = remote_address(ws.client.host if ws.client else None, ws.headers, limits.trusted_proxies)
         await ws.accept()
-        if len(conns) >= limits.max_sessions:
-            metrics.refused.labels("busy").inc()
-            metrics.errors.labels("busy").inc()
-            try:
-                await ws.send_bytes(encode(_error("busy", f"this replica serves its maximum of "
-                                                          f"{limits.max_sessions} sessions; try another or later")))
-                await ws.close(CLOSE_BUSY)
-            except _SOCKET_GONE:
-                pass
-            return
+        if n_sessions() >= limits.max_sessions:
+            return await refuse(ws, "busy", "busy", CLOSE_BUSY, f"this replica serves its maximum of "
+                                f"{limits.max_sessions} sessions; try another or later")
+        if per_address.get(address, 0) >= limits.max_per_address:
+            return await refuse(ws, "address", "busy", CLOSE_POLICY, f"{address} holds {limits.max_per_address} "
+                                "connections to this replica already, its maximum")
+        if len(conns) - n_sessions() >= limits.max_pending:
+            return await refuse(ws, "pending", "busy", CLOSE_BUSY, f"{limits.max_pending} connections are waiting "
+                                "for their hello; try another replica or later")
+        per_address[address] = per_address.get(address, 0) + 1
+        try:
+            await serve_connection(ws, address)
+        finally:
+            per_address[address] -= 1
+            if per_address[address] <= 0:
+                del per_address[address]
+
+    async def serve_connection(ws: WebSocket, address: str) -> None:
         loop = asyncio.get_running_loop()
         now = time.monotonic()
-        conn = _Connection(ws, Session(scenes, uuid.uuid4().hex, config, stopwatch=stopwatch), now)
+        conn = _Connection(ws, Session(scenes, uuid.uuid4().hex, config, stopwatch=stopwatch), now, address)
         register(conn)
         guard = RateGuard(limits, now)
 
@@ -308,13 +352,20 @@ def create_app(
                     if msg["type"] == "websocket.disconnect":
                         break
                     # Stamped on arrival: a pong's round trip must not include a selection it waited behind.
+                    # It counts as heard only once the session accepted it (the loop sets ``last_heard``).
                     t = time.monotonic()
-                    conn.last_heard = t
                     metrics.messages_in.inc()
-                    verdict = guard.check(t)
+                    data = msg.get("bytes")
+                    data = data if data is not None else (msg.get("text") or "")
+                    size = len(data)
+                    verdict = guard.check(t, size)
                     if verdict == RateGuard.PASS:
-                        data = msg.get("bytes")
-                        await conn.inbox.put((data if data is not None else (msg.get("text") or ""), t))
+                        # Bounded in bytes too: past ``inbox_bytes`` stop reading; TCP pushes back on the sender.
+                        while conn.inbox_bytes and conn.inbox_bytes + size > limits.inbox_bytes:
+                            conn.drained.clear()
+                            await conn.drained.wait()
+                        conn.inbox_bytes += size
+                        await conn.inbox.put((data, t, size))
                         continue
                     metrics.refused.labels("rate").inc()
                     if verdict == RateGuard.CLOSE:
@@ -364,8 +415,20 @@ def create_app(
             except ProtocolError:
                 return conn.session.receive(data, t)  # answers with the error frame and counts it
             if isinstance(message, Hello):
-                outcome = "fresh" if message.resume is None else await resume(conn, message.resume)
+                if n_sessions() >= limits.max_sessions:
+                    metrics.refused.labels("busy").inc()
+                    conn.request_close("busy", CLOSE_BUSY, f"this replica serves its maximum of "
+                                       f"{limits.max_sessions} sessions; try another or later")
+                    return []
+                if message.solver in MEASUREMENT_SOLVERS and not limits.allow_measurement_solvers:
+                    return [_error("solver_refused", f"solver {message.solver!r} is for measurement only; this "
+                                   "replica offers it to clients only when started with --allow-measurement-solvers")]
+                outcome = "fresh" if message.resume is None else await resume(conn, message.resume, message.scene)
                 metrics.resumes.labels(outcome).inc()
+                if outcome == "other_scene":
+                    return [_error("bad_state", f"session {message.resume.session} is of scene "
+                                   f"{conn.refused_resume!r}, not {message.scene!r}: resume it with scene "
+                                   f"{conn.refused_resume!r} (its state is kept), or say hello without resume")]
                 # A hello builds the session's scene tables: off the loop.
                 return await loop.run_in_executor(pool, conn.session.receive, message, t)
             return conn.session.receive(message, t)
@@ -384,6 +447,8 @@ def create_app(
                 deadline = session.next_deadline()
                 now = time.monotonic()
                 wake = conn.last_heard + limits.idle_timeout
+                if session.state is SessionState.AWAIT_HELLO:
+                    wake = min(wake, conn.opened + limits.hello_timeout)
                 if deadline is not None:
                     wake = min(wake, deadline)
                 if session.dirty and session.state is SessionState.ACTIVE:
@@ -399,13 +464,18 @@ def create_app(
                 try:
                     if item is _TICK:
                         now = time.monotonic()
+                        if session.state is SessionState.AWAIT_HELLO and now >= conn.opened + limits.hello_timeout:
+                            metrics.refused.labels("no_hello").inc()
+                            conn.request_close("no_hello", CLOSE_POLICY, f"no valid hello within "
+                                                                         f"{limits.hello_timeout:g} s; closing")
+                            continue
                         if now >= conn.last_heard + limits.idle_timeout:
                             metrics.refused.labels("idle").inc()
                             conn.request_close("idle", CLOSE_NORMAL, f"nothing heard for {limits.idle_timeout:g} s; "
                                                                      "the session is closed")
                             continue
                         if deadline is not None and now >= deadline:
-                            frames, delta, cpu, blob = await loop.run_in_executor(pool, poll_encoded, session, now)
+                            frames, delta, cpu, blob = await fair.run(session.id, poll_encoded, session, now)
                             await send(frames)
                             if delta:
                                 metrics.selection_seconds.observe(time.monotonic() - deadline)
@@ -425,11 +495,21 @@ def create_app(
                     if isinstance(item, Error):  # the reader's rate_limited answer
                         await send(encoded([item]))
                         continue
-                    data, t = item
+                    data, t, size = item
+                    conn.inbox_bytes -= size
+                    conn.drained.set()
                     if session.state is SessionState.AWAIT_HELLO:
                         out = await first(data, t)
                     else:
                         out = session.receive(data, t)
+                    if any(isinstance(m, Error) for m in out):  # refused: it never counts as being heard
+                        conn.bad_frames += 1
+                        if conn.bad_frames > limits.max_bad_frames:
+                            metrics.refused.labels("bad_frames").inc()
+                            conn.request_close("bad_frames", CLOSE_POLICY, f"more than {limits.max_bad_frames} "
+                                               "refused frames on this connection; closing")
+                    else:
+                        conn.last_heard = max(conn.last_heard, t)
                 except _SOCKET_GONE:
                     raise
                 except Exception:  # a bug of ours: log loudly, tell the client, keep the session
@@ -452,44 +532,11 @@ def create_app(
                     await save(session)
             finally:
                 session.close()
+                fair.forget(session.id)
                 unregister(conn)
                 conn.done.set()
 
     return app
-
-
-def check_state_url(url: str, timeout: float = 3.0) -> None:
-    """Refuse to start when the Redis at ``url`` does not answer (a clear error beats failing every resume)."""
-    import redis
-
-    from .state import _redact
-
-    client = redis.Redis.from_url(url, socket_connect_timeout=timeout, socket_timeout=timeout)
-    try:
-        client.ping()
-    except Exception as exc:
-        raise ServeError(f"the Redis state store at {_redact(url)} is unreachable: {exc}") from None
-    finally:
-        client.close()
-
-
-def bind_listener(host: str, port: int, send_buffer: int | None = None) -> socket.socket:
-    """A listening TCP socket on ``host:port``; ``ServeError`` naming the address if it cannot be had."""
-    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        if send_buffer is not None:  # accepted connections inherit it (and lose autotuning)
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, send_buffer)
-        sock.bind((host, port))
-        sock.listen(128)  # connections queue in the backlog until uvicorn accepts them
-    except (OSError, UnicodeError) as exc:
-        sock.close()
-        why = "the port is in use" if getattr(exc, "errno", None) == errno.EADDRINUSE else str(exc)
-        raise ServeError(f"cannot listen on {host}:{port}: {why}") from None
-    except OverflowError:
-        sock.close()
-        raise ServeError(f"cannot listen on {host}:{port}: the port must lie in 0..65535") from None
-    return sock
 
 
 def serve(

@@ -163,6 +163,16 @@ def serve(
     replica: Optional[str] = typer.Option(None, help="this replica's name in /health (default: hostname:port)"),
     send_buffer: Optional[int] = typer.Option(None, help="kernel send buffer per connection in bytes (default: "
                                               "autotuned); smaller bounds what a slow client pins"),
+    hello_timeout: float = typer.Option(5.0, help="seconds a new connection has to say its hello"),
+    max_bad_frames: int = typer.Option(16, help="refused frames a connection may send before it is closed"),
+    max_per_address: int = typer.Option(32, help="connections one remote address may hold open at once"),
+    byte_rate: float = typer.Option(256 * 1024, help="bytes per second a connection may send (token bucket)"),
+    trusted_proxy: list[str] = typer.Option([], "--trusted-proxy", help="address of a reverse proxy whose "
+                                            "X-Real-IP names the client (repeatable)"),
+    allow_measurement_solvers: bool = typer.Option(False, "--allow-measurement-solvers",
+                                                   help="let clients ask for the exact solver (for benchmarks; "
+                                                        "one client can keep a CPU busy)"),
+    docs: bool = typer.Option(False, "--docs", help="serve the interactive API docs at /docs (loads from a CDN)"),
 ) -> None:
     """Serve scene stores over websockets at /ws (plus /health, /scenes, /metrics, and /sessions for admins)."""
     from server.app import ServeError
@@ -183,7 +193,10 @@ def serve(
         raise typer.BadParameter("τ must lie in [0.05, 10] seconds", param_hint="--tau")
     if not 1e-12 <= c_vertex <= 1e-3:
         raise typer.BadParameter("must lie in [1e-12, 1e-3] seconds", param_hint="--c-vertex")
-    given = dict(max_sessions=max_sessions, rate=rate, burst=burst, idle_timeout=idle_timeout, state_ttl=state_ttl)
+    given = dict(max_sessions=max_sessions, rate=rate, burst=burst, idle_timeout=idle_timeout, state_ttl=state_ttl,
+                 hello_timeout=hello_timeout, max_bad_frames=max_bad_frames, max_per_address=max_per_address,
+                 byte_rate=byte_rate, trusted_proxies=tuple(trusted_proxy),
+                 allow_measurement_solvers=allow_measurement_solvers, docs=docs)
     if workers is not None:
         given["workers"] = workers
     if send_buffer is not None:

@@ -1,22 +1,34 @@
-"""What one replica allows: sessions, message rate, idleness, frame size, keepalive, worker threads.
+"""What one replica allows: sessions, connections, message and byte rates, idleness, frame size, keepalive.
 
 The limits protect the replica and the other sessions from one client: a
 flood is dropped (and answered, at most once a second) rather than queued, an
 idle connection is closed rather than kept, and past ``max_sessions`` a new
-connection is refused cleanly so a load balancer can try another replica.
+connection is refused cleanly so a load balancer can try another replica. A
+connection holds no session slot until its hello: it must say one within
+``hello_timeout``, frames the server refuses never count as being heard, and
+past ``max_bad_frames`` refusals it is closed. ``max_per_address`` caps the
+connections one remote host may hold open (behind a trusted proxy, the
+address its ``X-Real-IP`` names).
 """
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import os
 from dataclasses import dataclass, field
+from typing import Mapping
 
-__all__ = ["ReplicaLimits", "TokenBucket", "RateGuard", "WS_MAX_SIZE"]
+from proto.codec import MAX_CLIENT_FRAME
 
-#: Frames above this are refused by the websocket layer itself (close 1009); between
-#: ``proto.codec.MAX_CLIENT_FRAME`` and this, the codec answers with a ``too_large`` error frame.
-WS_MAX_SIZE = 1024 * 1024
+__all__ = ["ReplicaLimits", "TokenBucket", "RateGuard", "WS_MAX_SIZE", "remote_address", "MEASUREMENT_SOLVERS"]
+
+#: Solvers meant for measurement: unbounded in time, so clients get them only where the server allows it.
+MEASUREMENT_SOLVERS = frozenset({"exact"})
+
+#: Frames above the protocol's limit are refused by the websocket layer itself (close 1009) from their
+#: header, before their payload is read or buffered.
+WS_MAX_SIZE = MAX_CLIENT_FRAME
 
 
 def _cpus() -> int:
@@ -40,6 +52,17 @@ class ReplicaLimits:
     send_buffer : kernel send buffer per connection (bytes; None: the kernel's autotuning, up to
         tcp_wmem's maximum — megabytes per client). Smaller bounds the memory a slow client pins and
         makes backpressure reach its session sooner.
+    hello_timeout : seconds a new connection has to say a valid hello before it is closed
+    max_bad_frames : refused frames one connection may send; the next closes it (1008)
+    max_per_address : connections one remote address may hold open at once
+    max_pending : connections without a hello yet, replica-wide, at once
+    byte_rate, byte_burst : a connection's token bucket in bytes (per second, and the most at once)
+    inbox_bytes : bytes of received frames a connection may have waiting for its session; past it the
+        server stops reading that socket (TCP backpressure reaches the sender)
+    trusted_proxies : addresses (or networks) of reverse proxies whose ``X-Real-IP`` (else the last ``X-Forwarded-For``)
+        names the client's address
+    allow_measurement_solvers : let clients ask for solvers meant for measurement only (``exact``)
+    docs : serve the interactive API docs at /docs (their page loads its scripts from a public CDN)
     """
 
     max_sessions: int = 256
@@ -55,6 +78,16 @@ class ReplicaLimits:
     state_ttl: float = 300.0
     save_interval: float = 0.25
     send_buffer: int | None = None
+    hello_timeout: float = 5.0
+    max_bad_frames: int = 16
+    max_per_address: int = 32
+    max_pending: int = 256
+    byte_rate: float = 256 * 1024
+    byte_burst: float = 4 * MAX_CLIENT_FRAME
+    inbox_bytes: int = 4 * MAX_CLIENT_FRAME
+    trusted_proxies: tuple[str, ...] = ()
+    allow_measurement_solvers: bool = False
+    docs: bool = False
 
     def __post_init__(self) -> None:
         def positive(name: str, low: float = 0.0, high: float = math.inf) -> None:
@@ -64,7 +97,8 @@ class ReplicaLimits:
             if not low < value <= high:
                 raise ValueError(f"{name} must lie in ({low:g}, {high:g}], got {value!r}")
 
-        for name in ("max_sessions", "workers", "max_message"):
+        for name in ("max_sessions", "workers", "max_message", "max_bad_frames", "max_per_address", "max_pending",
+                     "inbox_bytes"):
             if not isinstance(getattr(self, name), int) or isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be an integer, got {getattr(self, name)!r}")
         positive("max_sessions", 0, 1_000_000)
@@ -81,6 +115,24 @@ class ReplicaLimits:
         positive("ping_timeout", 0, 3600)
         positive("state_ttl", 0, 30 * 86400)
         positive("save_interval", 0, 3600)
+        positive("hello_timeout", 0, 3600)
+        positive("max_bad_frames", 0, 1_000_000)
+        positive("max_per_address", 0, 1_000_000)
+        positive("max_pending", 0, 1_000_000)
+        positive("byte_rate", 0, 1 << 34)
+        positive("byte_burst", 0, 1 << 34)
+        if self.byte_burst < self.max_message:
+            raise ValueError(f"byte_burst must hold one largest frame ({self.max_message} bytes), "
+                             f"got {self.byte_burst!r}")
+        positive("inbox_bytes", 0, 1 << 34)
+        if self.inbox_bytes < self.max_message:
+            raise ValueError(f"inbox_bytes must hold one largest frame ({self.max_message} bytes), "
+                             f"got {self.inbox_bytes!r}")
+        for address in self.trusted_proxies:
+            try:
+                ipaddress.ip_network(address, strict=False)
+            except ValueError:
+                raise ValueError(f"trusted_proxies must be IP addresses or networks, got {address!r}") from None
         if self.send_buffer is not None:
             if not isinstance(self.send_buffer, int) or isinstance(self.send_buffer, bool):
                 raise ValueError(f"send_buffer must be an integer, got {self.send_buffer!r}")
@@ -96,14 +148,17 @@ class TokenBucket:
         self.rate, self.burst = float(rate), float(burst)
         self.tokens, self.at = float(burst), now
 
-    def take(self, now: float) -> bool:
-        """True if a message arriving at ``now`` may pass (and spend its token)."""
-        self.tokens = min(self.burst, self.tokens + (now - self.at) * self.rate)
-        self.at = now
-        if self.tokens >= 1.0 - 1e-9:  # a client exactly at the rate must not lose to rounding
-            self.tokens -= 1.0
+    def take(self, now: float, amount: float = 1.0) -> bool:
+        """True if ``amount`` (one message, or its bytes) arriving at ``now`` may pass (and spend its tokens)."""
+        self.refill(now)
+        if self.tokens >= amount - 1e-9:  # a client exactly at the rate must not lose to rounding
+            self.tokens -= amount
             return True
         return False
+
+    def refill(self, now: float) -> None:
+        self.tokens = min(self.burst, self.tokens + (now - self.at) * self.rate)
+        self.at = now
 
 
 class RateGuard:
@@ -119,13 +174,17 @@ class RateGuard:
     def __init__(self, limits: ReplicaLimits, now: float) -> None:
         self.limits = limits
         self.bucket = TokenBucket(limits.rate, limits.burst, now)
+        self.bytes = TokenBucket(limits.byte_rate, limits.byte_burst, now)
         self.abuse_since: float | None = None
         self.last_drop = -math.inf
         self.last_answer = -math.inf
         self.dropped = 0
 
-    def check(self, now: float) -> str:
-        if self.bucket.take(now):
+    def check(self, now: float, nbytes: int = 0) -> str:
+        """The verdict on a message of ``nbytes`` arriving at ``now``: both buckets must pass it."""
+        self.bytes.refill(now)
+        if self.bytes.tokens >= nbytes - 1e-9 and self.bucket.take(now):
+            self.bytes.tokens -= nbytes
             return self.PASS
         self.dropped += 1
         if now - self.last_drop > 1.0:  # a quiet second ends a streak of abuse
@@ -137,3 +196,28 @@ class RateGuard:
             self.last_answer = now
             return self.ANSWER
         return self.DROP
+
+
+def _trusted(peer: str, trusted: tuple[str, ...]) -> bool:
+    if not trusted:
+        return False
+    try:
+        address = ipaddress.ip_address(peer)
+    except ValueError:
+        return False
+    return any(address in ipaddress.ip_network(net, strict=False) for net in trusted)
+
+
+def remote_address(peer: str | None, headers: Mapping[str, str], trusted: tuple[str, ...]) -> str:
+    """The client's address: the socket's peer, or what a trusted proxy in front of us says it is."""
+    peer = peer or "unknown"
+    if not _trusted(peer, trusted):
+        return peer
+    claimed = headers.get("x-real-ip", "").strip()
+    if not claimed:
+        forwarded = [a.strip() for a in headers.get("x-forwarded-for", "").split(",") if a.strip()]
+        claimed = forwarded[-1] if forwarded else ""
+    try:
+        return str(ipaddress.ip_address(claimed))
+    except ValueError:
+        return peer

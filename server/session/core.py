@@ -35,6 +35,8 @@ another fresh set.
 
 from __future__ import annotations
 
+import math
+
 import secrets
 from types import SimpleNamespace
 from typing import Callable, Mapping
@@ -102,6 +104,7 @@ class Session:
         self._ping_id = 0
         self._pings: dict[int, float] = {}  # id → stamp of each ping not yet answered
         self._observe_due = -np.inf  # client time from which the next frame report is folded into the cost model
+        self._last_reset = -math.inf  # when the last reset selection began (server clock)
         self._restored: dict | None = None  # what ``restore`` took in that the hello applies or discards
         self._saved: tuple | None = None  # ``_progress()`` at the last snapshot (see ``dirty``)
 
@@ -137,6 +140,8 @@ class Session:
         if self.predictor is not None and self.predictor.add(message.t, message.eye, message.forward, message.up):
             if self.timing.teleport(now):  # a teleport: the pipeline restarts from here
                 self.teleports += 1
+                # At most one reset selection per τ/2: a camera jumping on every message costs what two do.
+                self.timing.next_selection = max(now, self._last_reset + self.config.tau / 2)
         if self.timing.next_selection is None:
             self.timing.next_selection = now  # the first pose is answered at once
         return []
@@ -297,6 +302,8 @@ class Session:
         assert hello is not None and camera is not None
         c_now = self.clock.client_time(now)
         reset, start, switch, t0, t1 = self.timing.plan(c_now, self.lead())
+        if reset:
+            self._last_reset = now
         view, margin = self.timing.cameras(self.config, hello, camera, self.predictor, self.pipeline.table.bounds,
                                            c_now, t0, t1)
         self.seq += 1
@@ -417,6 +424,11 @@ class Session:
         blob = _blob.pack_snapshot(state)
         self._saved = self._progress()
         return blob
+
+    @property
+    def restored_scene(self) -> str | None:
+        """The scene of the snapshot ``restore`` took in (None before one): a resume must name the same."""
+        return None if self._restored is None else self._restored["scene"]
 
     def restore(self, blob: bytes) -> None:
         """Take in a ``snapshot`` of this session, before its hello; ValueError (session unchanged) if the blob
