@@ -177,6 +177,36 @@ def bench_encoding(
         print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
 
 
+@bench_app.command("hostile")
+def bench_hostile(
+    store: Optional[Path] = typer.Option(None, "--store", help="scene store (default: the cached demo scene)"),
+    seconds: float = typer.Option(8.0, min=2.0, help="seconds of the good client's run per attack"),
+    attack: Optional[list[str]] = typer.Option(None, "--attack", help="run only these attacks (repeatable)"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
+) -> None:
+    """A real replica, one good client and in turn each attack; the good client's deltas against its run
+    without attack, on time, frame p95, the server's CPU and RSS, and whether a new client still connects."""
+    from bench.hostile import ATTACKS, format_table, run
+    from bench.stores import build_demo, demo_store
+
+    for a in attack or []:
+        if a not in ATTACKS:
+            raise typer.BadParameter(f"unknown attack {a!r}; choose from {', '.join(ATTACKS)}", param_hint="--attack")
+    if store is None:
+        store = demo_store(24, 0)
+        if not store.exists():
+            build_demo(store, 24, 0, quiet=as_json)
+    elif not store.exists():
+        raise typer.BadParameter(f"no such store: {store}", param_hint="--store")
+    result = run(store, seconds=seconds, attacks=attack or None, say=lambda s: typer.echo(s, err=True))
+    for line in format_table(result):
+        typer.echo(line, err=as_json)
+    if as_json:
+        print(json.dumps(result))
+    if not result["passed"]:
+        raise typer.Exit(1)
+
+
 def demo(
     duration: float = typer.Option(10.0, help="seconds of tour to run"),
     target_ms: float = typer.Option(50.0, help="target frame time in milliseconds"),

@@ -771,7 +771,9 @@ def test_near_valid_maps_validate_fully_or_are_refused_with_a_known_code(obj):
 #: runs with its per-session rate limit raised to 1000/s (burst 1000; the default is 200/s, burst 400) so that a
 #: few thousand frames take seconds, and they are paced under it so they reach the decoder, not the limiter.
 HOSTILE_FRAMES, HOSTILE_BURST, HOSTILE_RATE = 3_000, 800, 900.0
-SERVER_LIMITS = ["--rate", "1000", "--burst", "1000"]
+# Within every limit but the one under test: the frames must reach the decoder and the session, not be cut
+# off by the bad-frame count or the byte rate (tests/integration/test_limits_hostile.py tests those).
+SERVER_LIMITS = ["--rate", "1000", "--burst", "1000", "--max-bad-frames", "1000000", "--byte-rate", "1e9"]
 
 
 def test_real_server_hostile_socket_beside_a_good_one(demo_store):
