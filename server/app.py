@@ -453,10 +453,14 @@ def create_app(
                     wake = min(wake, deadline)
                 if session.dirty and session.state is SessionState.ACTIVE:
                     wake = min(wake, conn.last_save + limits.save_interval)
-                try:
-                    item = await asyncio.wait_for(conn.inbox.get(), max(0.0, wake - now))
-                except asyncio.TimeoutError:
-                    item = _TICK
+                if not conn.inbox.empty():
+                    # What arrived goes first: a due selection then reads the newest pose, never a stale one.
+                    item = conn.inbox.get_nowait()
+                else:
+                    try:
+                        item = await asyncio.wait_for(conn.inbox.get(), max(0.0, wake - now))
+                    except asyncio.TimeoutError:
+                        item = _TICK
                 if item is _GONE:
                     break
                 if item is _WAKE:
