@@ -229,7 +229,7 @@ class Cluster:
             # nginx (on loopback) names each client in X-Real-IP, and the replicas trust it; every simulated
             # client is on loopback too, so one address may hold as many connections as the cluster serves.
             return ServerProcess(stores, extra=["--tau", str(tau), "--trusted-proxy", "127.0.0.1",
-                                                "--max-per-address", "100000", *extra],
+                                                "--max-per-address", "100000", "--connect-rate", "1e6", *extra],
                                  admin_token=self.admin_token,
                                  redis=self.redis_url, replica=f"r{i}")
 

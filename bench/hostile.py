@@ -236,7 +236,11 @@ ATTACKER = "203.0.113.66"
 
 def _attack_main(attack: str, url: str, scene: str, start: dict, stop, ready) -> None:
     """In a child process (its own GIL: the good client's frames are not slowed by the attacker's Python)."""
+    import logging
+
     import websockets.sync.client as wsc
+
+    logging.getLogger("websockets").setLevel(logging.CRITICAL)  # a refused attacker's traces are expected
 
     plain = wsc.connect
 

@@ -36,7 +36,7 @@ from proto.errors import ERROR_CODES, ProtocolError
 from proto.messages import Delta, Error, Hello, Resume
 
 from .fair import FairPool
-from .limits import MEASUREMENT_SOLVERS, WS_MAX_SIZE, ReplicaLimits, RateGuard, remote_address
+from .limits import MEASUREMENT_SOLVERS, WS_MAX_SIZE, Admission, RateGuard, ReplicaLimits, remote_address
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .scene.store import SceneStore
 from .session import Session, SessionConfig, SessionState
@@ -127,7 +127,7 @@ def create_app(
     conns: dict[str, _Connection] = {}
     sessions: dict[str, Session] = {}  # the same, by session (tests and /sessions look here)
     metrics = Metrics(lambda: len(conns))
-    per_address: dict[str, int] = {}  # open connections by remote address
+    admission = Admission(limits)
 
     def n_sessions() -> int:
         """Connections that said their hello: the ones holding a session slot."""
@@ -321,22 +321,15 @@ def create_app(
     async def ws_endpoint(ws: WebSocket) -> None:
         address = remote_address(ws.client.host if ws.client else None, ws.headers, limits.trusted_proxies)
         await ws.accept()
-        if n_sessions() >= limits.max_sessions:
-            return await refuse(ws, "busy", "busy", CLOSE_BUSY, f"this replica serves its maximum of "
-                                f"{limits.max_sessions} sessions; try another or later")
-        if per_address.get(address, 0) >= limits.max_per_address:
-            return await refuse(ws, "address", "busy", CLOSE_POLICY, f"{address} holds {limits.max_per_address} "
-                                "connections to this replica already, its maximum")
-        if len(conns) - n_sessions() >= limits.max_pending:
-            return await refuse(ws, "pending", "busy", CLOSE_BUSY, f"{limits.max_pending} connections are waiting "
-                                "for their hello; try another replica or later")
-        per_address[address] = per_address.get(address, 0) + 1
+        refusal = admission.admit(address, time.monotonic(), n_sessions(), len(conns) - n_sessions())
+        if refusal is not None:
+            reason, message = refusal
+            return await refuse(ws, reason, "busy", CLOSE_BUSY if reason in ("busy", "pending") else CLOSE_POLICY,
+                                message)
         try:
             await serve_connection(ws, address)
         finally:
-            per_address[address] -= 1
-            if per_address[address] <= 0:
-                del per_address[address]
+            admission.release(address)
 
     async def serve_connection(ws: WebSocket, address: str) -> None:
         loop = asyncio.get_running_loop()

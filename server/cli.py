@@ -166,6 +166,8 @@ def serve(
     hello_timeout: float = typer.Option(5.0, help="seconds a new connection has to say its hello"),
     max_bad_frames: int = typer.Option(16, help="refused frames a connection may send before it is closed"),
     max_per_address: int = typer.Option(32, help="connections one remote address may hold open at once"),
+    connect_rate: float = typer.Option(10.0, help="new connections per second one remote address may open "
+                                       "(burst 40)"),
     byte_rate: float = typer.Option(256 * 1024, help="bytes per second a connection may send (token bucket)"),
     trusted_proxy: list[str] = typer.Option([], "--trusted-proxy", help="address of a reverse proxy whose "
                                             "X-Real-IP names the client (repeatable)"),
@@ -195,7 +197,7 @@ def serve(
         raise typer.BadParameter("must lie in [1e-12, 1e-3] seconds", param_hint="--c-vertex")
     given = dict(max_sessions=max_sessions, rate=rate, burst=burst, idle_timeout=idle_timeout, state_ttl=state_ttl,
                  hello_timeout=hello_timeout, max_bad_frames=max_bad_frames, max_per_address=max_per_address,
-                 byte_rate=byte_rate, trusted_proxies=tuple(trusted_proxy),
+                 byte_rate=byte_rate, connect_rate=connect_rate, trusted_proxies=tuple(trusted_proxy),
                  allow_measurement_solvers=allow_measurement_solvers, docs=docs)
     if workers is not None:
         given["workers"] = workers

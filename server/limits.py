@@ -21,7 +21,7 @@ from typing import Mapping
 
 from proto.codec import MAX_CLIENT_FRAME
 
-__all__ = ["ReplicaLimits", "TokenBucket", "RateGuard", "WS_MAX_SIZE", "remote_address", "MEASUREMENT_SOLVERS"]
+__all__ = ["ReplicaLimits", "TokenBucket", "RateGuard", "Admission", "WS_MAX_SIZE", "remote_address", "MEASUREMENT_SOLVERS"]
 
 #: Solvers meant for measurement: unbounded in time, so clients get them only where the server allows it.
 MEASUREMENT_SOLVERS = frozenset({"exact"})
@@ -56,6 +56,8 @@ class ReplicaLimits:
     max_bad_frames : refused frames one connection may send; the next closes it (1008)
     max_per_address : connections one remote address may hold open at once
     max_pending : connections without a hello yet, replica-wide, at once
+    connect_rate, connect_burst : new connections one remote address may open (a token bucket per address:
+        a client that reconnects after every refusal costs the replica a handshake each time)
     byte_rate, byte_burst : a connection's token bucket in bytes (per second, and the most at once)
     inbox_bytes : bytes of received frames a connection may have waiting for its session; past it the
         server stops reading that socket (TCP backpressure reaches the sender)
@@ -82,6 +84,8 @@ class ReplicaLimits:
     max_bad_frames: int = 16
     max_per_address: int = 32
     max_pending: int = 256
+    connect_rate: float = 10.0
+    connect_burst: float = 40.0
     byte_rate: float = 256 * 1024
     byte_burst: float = 4 * MAX_CLIENT_FRAME
     inbox_bytes: int = 4 * MAX_CLIENT_FRAME
@@ -119,6 +123,10 @@ class ReplicaLimits:
         positive("max_bad_frames", 0, 1_000_000)
         positive("max_per_address", 0, 1_000_000)
         positive("max_pending", 0, 1_000_000)
+        positive("connect_rate", 0, 1e6)
+        positive("connect_burst", 0, 1e7)
+        if self.connect_burst < 1:
+            raise ValueError(f"connect_burst must be at least 1 connection, got {self.connect_burst!r}")
         positive("byte_rate", 0, 1 << 34)
         positive("byte_burst", 0, 1 << 34)
         if self.byte_burst < self.max_message:
@@ -221,3 +229,43 @@ def remote_address(peer: str | None, headers: Mapping[str, str], trusted: tuple[
         return str(ipaddress.ip_address(claimed))
     except ValueError:
         return peer
+
+
+class Admission:
+    """Whether a new connection from an address may open: sessions, pending hellos, per-address count and rate.
+
+    ``admit`` returns None (admitted: counted until ``release``) or (reason, sentence). Clock injected.
+    """
+
+    FORGET_ABOVE = 4096  # addresses remembered before those whose buckets refilled are forgotten
+
+    def __init__(self, limits: ReplicaLimits) -> None:
+        self.limits = limits
+        self.open: dict[str, int] = {}
+        self.opened: dict[str, TokenBucket] = {}
+
+    def admit(self, address: str, now: float, sessions: int, pending: int) -> tuple[str, str] | None:
+        lim = self.limits
+        if sessions >= lim.max_sessions:
+            return "busy", f"this replica serves its maximum of {lim.max_sessions} sessions; try another or later"
+        bucket = self.opened.setdefault(address, TokenBucket(lim.connect_rate, lim.connect_burst, now))
+        if len(self.opened) > self.FORGET_ABOVE:
+            for key, b in list(self.opened.items()):
+                if key != address and b.tokens + (now - b.at) * b.rate >= b.burst:
+                    del self.opened[key]
+        if not bucket.take(now):
+            return "connect_rate", (f"{address} opens more than {lim.connect_rate:g} connections a second; "
+                                    "wait before reconnecting")
+        if self.open.get(address, 0) >= lim.max_per_address:
+            return "address", f"{address} holds {lim.max_per_address} connections to this replica already, its maximum"
+        if pending >= lim.max_pending:
+            return "pending", f"{lim.max_pending} connections are waiting for their hello; try another replica or later"
+        self.open[address] = self.open.get(address, 0) + 1
+        return None
+
+    def release(self, address: str) -> None:
+        left = self.open.get(address, 0) - 1
+        if left > 0:
+            self.open[address] = left
+        else:
+            self.open.pop(address, None)

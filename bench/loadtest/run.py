@@ -375,7 +375,8 @@ def run_loadtest(
             extra = ["--tau", str(tau)]
             if clients > 256:  # the server's default max_sessions: past it, it would refuse them (busy)
                 extra += ["--max-sessions", str(clients)]
-            extra += ["--max-per-address", str(max(32, clients + 2))]  # every simulated client is on loopback
+            # Every simulated client is on loopback: one address opens them all, at once.
+            extra += ["--max-per-address", str(max(32, clients + 2)), "--connect-rate", "1e6"]
             server = ServerProcess(list(map(Path, stores)), extra=extra)
             url, pid = server.url, server.proc.pid
             admin_headers = admin_headers or getattr(server, "admin_headers", None)

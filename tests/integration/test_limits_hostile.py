@@ -218,3 +218,17 @@ def test_a_resume_into_another_scene_is_refused_and_the_state_kept(demo_store, a
             ws.send(_hello(scene="demo", resume=ask))  # the saved state was kept: the right scene resumes it
             again = decode_server(ws.recv(timeout=10))
             assert isinstance(again, Welcome) and again.resumed and again.session == welcome.session
+
+
+def test_admission_counts_connections_and_reconnects_per_address():
+    from server.limits import Admission
+
+    admission = Admission(ReplicaLimits(max_sessions=4, max_per_address=2, connect_rate=1.0, connect_burst=3,
+                                        max_pending=10))
+    assert admission.admit("a", 0.0, 0, 0) is None and admission.admit("a", 0.0, 0, 1) is None
+    assert admission.admit("a", 0.0, 0, 2)[0] == "address"  # two open: the third is refused ...
+    assert admission.admit("b", 0.0, 0, 2) is None  # ... another address is not
+    admission.release("a")
+    assert admission.admit("a", 0.0, 0, 2)[0] == "connect_rate"  # three opened at once: the burst is spent
+    assert admission.admit("a", 1.0, 0, 2) is None  # a second later, one more
+    assert admission.admit("c", 1.0, 4, 0)[0] == "busy" and admission.admit("c", 1.0, 0, 10)[0] == "pending"
