@@ -150,6 +150,33 @@ def bench_render(
         print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
 
 
+@bench_app.command("benefit")
+def bench_benefit(
+    stores: Optional[list[Path]] = typer.Option(None, "--store", help="scene stores to measure "
+                                                 "(default: the auditorium and the cached Den Haag store)"),
+    objects: int = typer.Option(8, min=1, help="objects per scene, each drawn at every level from 15 views"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
+) -> None:
+    """How well each accuracy model (F&S, Zach, screen-space error) ranks and predicts the image error
+    (FLIP against the finest level) the real renderer draws; picks the simplest within 10 % of the best."""
+    from bench.benefit import run as run_benefit
+
+    if not stores:
+        from bench.stores import cached_auditorium, cached_denhaag
+
+        stores = [cached_auditorium(as_json), cached_denhaag(quiet=as_json)]
+    for p in stores:
+        if not p.exists():
+            raise typer.BadParameter(f"no such store: {p}", param_hint="--store")
+    bar, tick = progress_bar("bench benefit", quiet=as_json)
+    with bar:
+        result = run_benefit(list(stores), objects=objects, progress=tick)
+    for line in result["lines"]:
+        typer.echo(line, err=as_json)
+    if as_json:
+        print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
+
+
 @bench_app.command("encoding")
 def bench_encoding(
     stores: Optional[list[Path]] = typer.Option(None, "--store", help="scene stores to measure "
