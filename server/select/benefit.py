@@ -28,6 +28,7 @@ __all__ = [
     "ALGORITHM_SAMPLES",
     "MIN_FACTOR",
     "ACCURACY_MODES",
+    "DEFAULT_ACCURACY",
     "resolved_accuracy",
     "accuracy",
     "algorithm_accuracy",
@@ -57,6 +58,10 @@ ALGORITHM_SAMPLES = {"flat": "faces", "lit": "vertices", "textured": "vertices"}
 
 #: ``BenefitFactors.accuracy`` values; "auto" lets the view choose (``resolved_accuracy``).
 ACCURACY_MODES = ("auto", "fs", "zach", "sse", "off")
+
+#: What "auto" accuracy means where the levels' geometric errors are known: the simplest model whose
+#: rank correlation with the measured image error is within 10 % of the best (``bench benefit``).
+DEFAULT_ACCURACY = "sse"
 
 #: The floor of every qualitative factor: a multiplier in (0, 1] never reaches 0.
 MIN_FACTOR = 1e-3
@@ -288,8 +293,9 @@ class BenefitFactors:
             raise ValueError(f"no accuracy exponent for algorithms {missing}")
 
 
-def resolved_accuracy(factors: BenefitFactors, hierarchical: bool = False) -> BenefitFactors:
-    """``factors`` with "auto" accuracy made concrete: "zach" for the hierarchical view, else "fs".
+def resolved_accuracy(factors: BenefitFactors, hierarchical: bool = False, errors: bool = False) -> BenefitFactors:
+    """``factors`` with "auto" accuracy made concrete: ``DEFAULT_ACCURACY`` where the view holds its levels'
+    geometric errors (``errors``), else "zach" for the hierarchical view and "fs" for the flat one.
 
     An explicit setting is returned unchanged. The resolved copies are kept on
     ``factors`` (a session passes the same object every τ; validating a new one costs ~50 µs).
@@ -297,9 +303,11 @@ def resolved_accuracy(factors: BenefitFactors, hierarchical: bool = False) -> Be
     if factors.accuracy != "auto":
         return factors
     cache = vars(factors).setdefault("_resolved", {})
-    if hierarchical not in cache:
-        cache[hierarchical] = replace(factors, accuracy="zach" if hierarchical else "fs")
-    return cache[hierarchical]
+    key = (hierarchical, errors)
+    if key not in cache:
+        mode = DEFAULT_ACCURACY if errors else ("zach" if hierarchical else "fs")
+        cache[key] = replace(factors, accuracy=mode)
+    return cache[key]
 
 
 def benefit_matrix(
