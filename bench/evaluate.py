@@ -500,11 +500,22 @@ def _quality_job(store: str, viewport: tuple, fov_y: float, spilled: str, every:
 
 def table_rows(results: Mapping[str, Any], target_ms: float | None = None) -> list[dict]:
     """One row per method at ``target_ms`` (default the headline target), in ``METHODS`` order, a method's
-    run with the governor after it ("+gov"), each the median of its repeats (``bench.report.table.table1``)."""
-    from bench.report.table import table1
-
+    run with the governor after it ("+gov"); each the median of its repeats by mean frame time (as
+    ``bench.report.results.run_at`` picks it)."""
     target = float(results["target_ms"] if target_ms is None else target_ms)
-    return [{**row, "target_ms": target} for row in table1(dict(results), target)]
+    order = {name: i for i, name in enumerate(METHODS)}
+    groups: dict[tuple[str, bool], list] = {}
+    for r in results["runs"]:
+        free = not r.get("budget_dependent", METHODS.get(r["method"], METHODS["none"]).budget_dependent)
+        if free or float(r["target_ms"]) == target:
+            groups.setdefault((r["method"], bool(r.get("governor", False))), []).append(r)
+    rows = []
+    for (method, governor), runs in sorted(groups.items(), key=lambda kv: (order.get(kv[0][0], len(order)), kv[0][1])):
+        runs = sorted(runs, key=lambda r: (r["summary"].get("frame_mean_ms") is None,
+                                           r["summary"].get("frame_mean_ms") or 0.0))
+        median = runs[(len(runs) - 1) // 2]
+        rows.append({"method": f"{method}+gov" if governor else method, "target_ms": target, **median["summary"]})
+    return rows
 
 
 def _fmt(v, digits: int = 1) -> str:
