@@ -3,8 +3,9 @@
 Objects of a scene are drawn alone, at every level, by the real renderer (``client.renderer``
 through ``bench.replay.Replayer``, headless over EGL), from a spread of distances and angles;
 each coarser level's image is compared with the finest level's by FLIP. The measured error of a
-sample is FLIP summed over the image ÷ the pixels the object covers (in either image): the error
-per pixel of the object, which is what Accuracy stands for (Benefit = Size · Accuracy · …).
+sample is FLIP summed over the image ÷ the pixels the object covers (in either image; FLIP spreads an
+edge's error a pixel or two beyond, so it can pass 1): the error per pixel of the object, which is
+what Accuracy stands for (Benefit = Size · Accuracy · …).
 
 Each accuracy model of ``server.select.benefit`` predicts a loss 1 − Accuracy for the same
 sample, from what the selection knows: the level's faces and vertices, the pixels its box covers
@@ -197,6 +198,7 @@ def run(stores: list, *, objects: int = 8, viewport=(320, 180), seed: int = 0,
             picked = pick_objects(rp.index, objects, seed)
             samples = measure(rp, picked, progress)
             per_scene[str(rp.index.name)] = {"objects": int(picked.size), "samples": len(samples["measured"]),
+                                             "measured_max": max(samples["measured"], default=0.0),
                                              "scores": score(samples)}
         every = samples if every is None else {k: every[k] + samples[k] for k in every}
     overall = score(every) if every is not None else {}
