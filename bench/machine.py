@@ -22,7 +22,8 @@ _VALUES, _ROUNDS = 100_000, 4
 
 
 def split_cores(server_pid: int) -> dict:
-    """Pin ``server_pid`` to the first core this process may use and this process to the others.
+    """Pin ``server_pid`` (every thread of it) to the first core this process may use, and the calling thread
+    (so the threads it starts later: the client's renderer) to the others.
 
     Returns {"server": [cores], "client": [cores]}, or {} when fewer than two cores are available or the
     platform has no ``sched_setaffinity`` (nothing is pinned then).
@@ -34,11 +35,20 @@ def split_cores(server_pid: int) -> dict:
         return {}
     server, client = cores[:1], cores[1:]
     try:
-        os.sched_setaffinity(server_pid, server)
-        os.sched_setaffinity(0, client)
+        for tid in _threads(server_pid):  # a running server has threads already: each has its own mask
+            os.sched_setaffinity(tid, server)
+        os.sched_setaffinity(0, client)  # this thread; the client's renderer and its threads start after
     except OSError:
         return {}
     return {"server": server, "client": client}
+
+
+def _threads(pid: int) -> list[int]:
+    """The thread ids of process ``pid`` (Linux ``/proc``), or just ``pid`` where they cannot be listed."""
+    try:
+        return sorted(int(t) for t in os.listdir(f"/proc/{pid}/task"))
+    except OSError:
+        return [pid]
 
 
 def calibration_workload(rng_seed: int = 0) -> float:

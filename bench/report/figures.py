@@ -106,7 +106,9 @@ def write_traces(results: dict, path: Path, target_ms: float | None = None) -> P
     if calibration:
         ax = axes[-1, 0]
         for k, (name, t, ms) in enumerate(calibration):
-            ax.plot(t, ms, lw=0.8, marker=".", ms=3, color=_colour(name.split("+")[0], k), label=name)
+            ax.plot(t, ms, lw=0.8, marker=".", ms=3, color=_colour(name.split("+")[0], k), label=name,
+                    ls="--" if name.endswith("+gov") else "-")
+        ax.set_yscale("log")
         ax.set_ylabel("calib. ms")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=6, ncol=4, loc="upper right")
