@@ -80,7 +80,7 @@ class Levels:
         return cls(
             index.object_lo[rows], index.object_hi[rows], index.rep_first[rows], index.rep_count[rows],
             index.rep_faces, index.rep_vertices, index.object_class[rows].astype(np.int64), rows, parent,
-            rep_error=np.asarray(index.rep_error, np.float64),
+            rep_error=_errors(index),
         )
 
     @classmethod
@@ -113,6 +113,13 @@ class Levels:
             return depth
 
         return options.cached(self, "depth", make)
+
+
+def _errors(index) -> np.ndarray | None:
+    """(m,) float64 the index's geometric errors, or None when it stores none (all zero: an index built
+    without measuring them would make every level look as good as full detail)."""
+    err = np.asarray(getattr(index, "rep_error", np.zeros(0)), np.float64)
+    return err if err.size and bool((err > 0).any()) else None
 
 
 @dataclass(frozen=True)

@@ -87,3 +87,20 @@ def test_kernel_screen_error_equals_the_numpy_path(kern, seed, n, levels, r, hys
     got = options.benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, None,
                                  None, previous, None, error, extent)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_views_of_an_index_carry_its_errors_unless_it_stores_none(demo_store):
+    import dataclasses
+
+    from server.scene.store import SceneStore
+    from server.select.selection import Levels, Scene
+
+    with SceneStore.open(demo_store) as store:
+        index = store.index
+    scene = Scene.of(index)
+    assert scene.flat.rep_error is not None and scene.hierarchy.rep_error is not None
+    last = index.rep_first + index.rep_count - 1
+    coarse = np.setdiff1d(np.arange(index.n_representations), last)
+    assert (scene.flat.rep_error[coarse] > 0).all()  # a coarser level is never as good as full detail
+    blank = dataclasses.replace(index, rep_error=np.zeros_like(index.rep_error))
+    assert Levels.of(blank).rep_error is None  # no errors measured: F&S's / Zach's accuracy, not "all perfect"
