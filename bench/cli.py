@@ -150,6 +150,33 @@ def bench_render(
         print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
 
 
+@bench_app.command("benefit")
+def bench_benefit(
+    stores: Optional[list[Path]] = typer.Option(None, "--store", help="scene stores to measure "
+                                                 "(default: the auditorium and the cached Den Haag store)"),
+    objects: int = typer.Option(8, min=1, help="objects per scene, each drawn at every level from 15 views"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
+) -> None:
+    """How well each accuracy model (F&S, Zach, screen-space error) ranks and predicts the image error
+    (FLIP against the finest level) the real renderer draws; picks the simplest within 10 % of the best."""
+    from bench.benefit import run as run_benefit
+
+    if not stores:
+        from bench.stores import cached_auditorium, cached_denhaag
+
+        stores = [cached_auditorium(as_json), cached_denhaag(quiet=as_json)]
+    for p in stores:
+        if not p.exists():
+            raise typer.BadParameter(f"no such store: {p}", param_hint="--store")
+    bar, tick = progress_bar("bench benefit", quiet=as_json)
+    with bar:
+        result = run_benefit(list(stores), objects=objects, progress=tick)
+    for line in result["lines"]:
+        typer.echo(line, err=as_json)
+    if as_json:
+        print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
+
+
 @bench_app.command("encoding")
 def bench_encoding(
     stores: Optional[list[Path]] = typer.Option(None, "--store", help="scene stores to measure "
@@ -352,6 +379,13 @@ def eval_(
     scenario_method: str = typer.Option("predictive", help="the method the failure scenarios run"),
     scenario: Optional[list[str]] = typer.Option(None, "--scenario", help="run only these scenarios (repeat it; "
                                                  "spin, turn, oscillation, drift, below_coarsest, network)"),
+    repeats: int = typer.Option(3, help="runs of each method and budget, interleaved (A B C A B C …); Table 1 "
+                                "shows the median run and the spread"),
+    governor: bool = typer.Option(True, "--governor/--no-governor", help="run each budget-dependent method "
+                                  "also with the client's frame governor"),
+    algorithm: str = typer.Option("lit", help="the rendering algorithm every method draws with (flat, lit, "
+                                  "textured): the same rule for all"),
+    pin: bool = typer.Option(True, "--pin/--no-pin", help="server and client on different cores (≥ 2 cores)"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON line: Table 1, the checks, the "
                                  "scenarios and the report's path"),
 ) -> None:
@@ -386,6 +420,13 @@ def eval_(
         raise typer.BadParameter("a run needs more than the 2 s warm-up", param_hint="--duration")
     if every < 1:
         raise typer.BadParameter("must be ≥ 1", param_hint="--every")
+    if not 1 <= repeats <= 20:
+        raise typer.BadParameter(f"must lie in [1, 20], got {repeats}", param_hint="--repeats")
+    from proto.messages import ALGORITHMS
+
+    if algorithm not in ALGORITHMS:
+        raise typer.BadParameter(f"unknown algorithm {algorithm!r}; known: {', '.join(ALGORITHMS)}",
+                                 param_hint="--algorithm")
     if samples < 0:
         raise typer.BadParameter("must be ≥ 0", param_hint="--samples")
     if scenario:
@@ -405,7 +446,8 @@ def eval_(
         folder.mkdir(parents=True, exist_ok=True)
         results = ev.evaluate(store, scene=name, methods=names, target_ms=target_ms, budgets_ms=budget_list,
                               duration=duration, viewport=(width, height), tau=tau, seed=seed, quality=quality,
-                              every=every, samples=samples or None, out=folder, progress=tick)
+                              every=every, samples=samples or None, out=folder, progress=tick, repeats=repeats,
+                              governor=governor, algorithms=(algorithm,), pin=pin)
         if scenarios:
             from bench.scenarios.run import run_scenarios
 
@@ -423,7 +465,8 @@ def eval_(
             "scene": name, "store": str(store), "report": str(index), "target_ms": target_ms,
             "budgets_ms": results.get("budgets_ms"), "table1": table1(results),
             "checks": checks(results),
-            "runs": [{"method": r["method"], "target_ms": r["target_ms"], **r["summary"]} for r in results["runs"]],
+            "runs": [{"method": r["method"], "target_ms": r["target_ms"], "governor": r.get("governor", False),
+                      "repeat": r.get("repeat", 0), **r["summary"]} for r in results["runs"]],
             "scenarios": [{k: v for k, v in s.items()} for s in results.get("scenarios") or []],
             "skipped": results.get("skipped", {}),
         }))

@@ -3,7 +3,14 @@
 One real server (``walkstream serve`` in a child process) serves the scene; the
 real headless client drives one fresh session per run over the scene's tour, in
 a fixed order: each method at the target frame time and — where the method
-looks at the budget at all — at every other budget. Each run keeps every
+looks at the budget at all — at every other budget; a budget-dependent method runs
+both without and with the client's frame governor (``hello.governor``). Every run
+is repeated ``repeats`` times, interleaved (A B C A B C …), so that a slow stretch
+of the machine hits every method alike; server and client run on different cores
+and a calibration workload is timed every second beside each run
+(``bench.machine``). All runs offer the client one rendering algorithm
+(``ALGORITHMS``, "lit" by default), so every method draws with the same shading
+rule and differs only in the levels it picks. Each run keeps every
 frame's measured time, the server's selection time, triangles, drawn
 representations and bytes, and a trace of what it drew; afterwards the traces
 are replayed untimed (``bench.replay``) against the full-detail frame at the
@@ -34,7 +41,7 @@ from bench.jsonable import jsonable
 from bench.methods import METHODS, Method
 
 __all__ = [
-    "RunSpec", "MAX_FPS", "MAX_DURATION_S", "WARMUP_S", "scene_has_continuous", "plan", "skipped_methods",
+    "RunSpec", "ALGORITHMS", "REPEATS", "MAX_FPS", "MAX_DURATION_S", "WARMUP_S", "scene_has_continuous", "plan", "skipped_methods",
     "tour_of", "run_one", "summarize_frames", "evaluate", "print_table", "table_rows",
 ]
 
@@ -53,6 +60,11 @@ MAX_DURATION_S = 90.0
 #: passes the server's 200 messages/s per session: the server drops them (``rate_limited`` errors) and
 #: closes a session that keeps it up — the run would measure the rate limiter. 60 fps is 120 messages/s.
 MAX_FPS: float | None = 60.0
+#: The rendering algorithm every method of a Table 1 run draws with (the same rule for all: the baselines
+#: would otherwise take the richest shader, Optimization the one it prices best).
+ALGORITHMS: tuple[str, ...] = ("lit",)
+#: Runs of each (method, budget, governor), interleaved.
+REPEATS = 3
 
 
 def _noop(stage: str, done: int, total: int) -> None:
@@ -61,10 +73,13 @@ def _noop(stage: str, done: int, total: int) -> None:
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One run of the evaluation: a method at a target frame time (ms)."""
+    """One run of the evaluation: a method at a target frame time (ms), with or without the client's
+    frame governor, and which of its repeats it is."""
 
     method: Method
     target_ms: float
+    governor: bool = False
+    repeat: int = 0
 
 
 # ---------------------------------------------------------------- planning
@@ -115,8 +130,10 @@ def skipped_methods(methods: Iterable[str | Method] | None, continuous: bool) ->
 
 
 def plan(methods: Iterable[str | Method] | None, target_ms: float, budgets_ms: Iterable[float] | None,
-         *, continuous: bool = True) -> list[RunSpec]:
-    """The runs, in a fixed order: method by method (in the order given), budgets ascending.
+         *, continuous: bool = True, repeats: int = 1, governor: bool = True) -> list[RunSpec]:
+    """The runs, in a fixed order: method by method (in the order given), budgets ascending, a
+    budget-dependent method without then (``governor``) with the governor; all that ``repeats`` times,
+    interleaved (every run once, then every run again, …).
 
     A budget-independent method (none, static) runs once, at ``target_ms``; a continuous-only one (mixed)
     is dropped when ``continuous`` is False (``skipped_methods`` says so).
@@ -127,8 +144,11 @@ def plan(methods: Iterable[str | Method] | None, target_ms: float, budgets_ms: I
         if m.continuous_only and not continuous:
             continue
         for b in (budgets if m.budget_dependent else [float(target_ms)]):
-            specs.append(RunSpec(m, b))
-    return specs
+            for g in ((False, True) if m.budget_dependent and governor else (False,)):
+                specs.append(RunSpec(m, b, g))
+    if repeats < 1:
+        raise ValueError(f"repeats must be at least 1, got {repeats!r}")
+    return [RunSpec(sp.method, sp.target_ms, sp.governor, r) for r in range(repeats) for sp in specs]
 
 
 def tour_of(store: str | Path) -> tuple[list[dict], dict[str, float], float]:
@@ -250,32 +270,42 @@ def run_one(
     on_frame: Callable | None = None,
     warmup: float = WARMUP_S,
     max_fps: float | None = MAX_FPS,
+    algorithms: Sequence[str] = ALGORITHMS,
+    calibrate: bool = True,
 ) -> tuple[dict, list]:
     """One fresh session of ``spec`` over the tour (the server's, or ``tour``); returns (run dict, traces).
 
     The run dict has the schema's method, target_ms, solver, predict, morph, frames (every frame, the
     warm-up included, plus ``seq``: the selection drawn, −1 before the first), an empty quality and a
     summary (``summarize_frames`` plus errors, late, deltas and bytes_received; image figures None until
-    measured). ``traces`` are the client's ``FrameTrace`` per frame, aligned with the frames.
+    measured), governor and repeat, and (``calibrate``) the calibration workload's times beside the run
+    ({"t", "ms"}, ``bench.machine.Calibration``). ``traces`` are the client's ``FrameTrace`` per frame, aligned with the frames.
     """
+    import contextlib
+
+    from bench.machine import Calibration
     from client.app import run_client
 
     if not duration > 0:
         raise ValueError(f"duration must be positive, got {duration!r}")
     m = spec.method
-    run = run_client(
-        server_url, scene, duration=duration, viewport=tuple(viewport), fov_y=fov_y,
-        target_frame_time=spec.target_ms / 1e3, solver=m.solver, predict=m.predict, morph=m.morph, trace=True,
-        tour=tour, on_frame=on_frame, max_fps=max_fps,
-    )
+    with (Calibration() if calibrate else contextlib.nullcontext()) as calib:
+        run = run_client(
+            server_url, scene, duration=duration, viewport=tuple(viewport), fov_y=fov_y,
+            target_frame_time=spec.target_ms / 1e3, solver=m.solver, predict=m.predict, morph=m.morph, trace=True,
+            tour=tour, on_frame=on_frame, max_fps=max_fps, algorithms=tuple(algorithms), governor=spec.governor,
+        )
     frames = _frames_dict(run.frames)
     summary = summarize_frames(frames, warmup, spec.target_ms)
     summary.update({k: None for k in _QUALITY_KEYS})
     summary.update(errors=len(run.errors), late=int(run.late), deltas=int(run.deltas_received),
                    bytes_received=int(run.bytes_received), unmorphed=int(run.unmorphed))
+    calibration = calib.samples() if calib is not None else {"t": [], "ms": []}
+    summary["calibration_median_ms"] = float(np.median(calibration["ms"])) if calibration["ms"] else None
     result = {
         "method": m.name, "target_ms": float(spec.target_ms), "solver": m.solver, "predict": m.predict,
-        "morph": m.morph, "frames": frames,
+        "morph": m.morph, "governor": bool(spec.governor), "repeat": int(spec.repeat),
+        "budget_dependent": bool(m.budget_dependent), "frames": frames, "calibration": calibration,
         "quality": {k: [] for k in ("t", "frame", "flip", "psnr", "ssim", "popping")},
         "summary": summary,
         "error_codes": sorted({e.code for e in run.errors}),
@@ -313,6 +343,10 @@ def evaluate(
     max_fps: float | None = MAX_FPS,
     samples: int | None = 24,
     workers: int | None = None,
+    repeats: int = REPEATS,
+    governor: bool = True,
+    algorithms: Sequence[str] = ALGORITHMS,
+    pin: bool = True,
 ) -> dict:
     """Run every method over ``store``'s tour on one real server; the schema's results dict.
 
@@ -323,7 +357,9 @@ def evaluate(
     run (spread over it; None: no cap), in ``workers`` processes (default: one per CPU), and with ``out`` the false-colour
     level images at viewpoints A and C of the runs at ``target_ms`` go to ``out/images``. Each run's traces
     wait on disk (a temporary folder), not in memory, and are dropped once measured. The run order is
-    fixed; ``seed`` is recorded and handed to the quality sampling where it takes one.
+    fixed; ``seed`` is recorded and handed to the quality sampling where it takes one. ``repeats``,
+    ``governor`` and ``algorithms`` as ``plan`` and the module docstring say; ``pin`` puts server and
+    client on different cores (``bench.machine.split_cores``) and restores this process's cores after.
     """
     from bench.demo import ServerProcess
     from server.scene.store import SceneStore
@@ -341,7 +377,7 @@ def evaluate(
     chosen = _methods(methods)
     continuous = scene_has_continuous(store)
     budgets = _budgets(target_ms, budgets_ms)
-    specs = plan(chosen, target_ms, budgets, continuous=continuous)
+    specs = plan(chosen, target_ms, budgets, continuous=continuous, repeats=repeats, governor=governor)
     keys, viewpoints, length = tour_of(store)
     if duration is None:
         if length <= 0:
@@ -356,7 +392,8 @@ def evaluate(
         "viewpoints": {k: v for k, v in viewpoints.items() if v <= duration},
         "methods": [m.name for m in chosen if not (m.continuous_only and not continuous)],
         "skipped": skipped_methods(chosen, continuous),
-        "max_fps": max_fps,
+        "max_fps": max_fps, "repeats": int(repeats), "governor": bool(governor),
+        "algorithms": [str(a) for a in algorithms], "cores": {},
         "runs": [], "images": {},
     }
     derived = derive_viewpoints(store, duration, warmup, viewport=viewport, fov_y=fov_y,
@@ -368,26 +405,41 @@ def evaluate(
     with tempfile.TemporaryDirectory(prefix="walkstream-eval-") as spill:
         spilled: list[Path] = []
         near: dict[str, dict[str, Any]] = {k: {} for k in at_views}  # viewpoint → method → its nearest trace
+        mine = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
         with ServerProcess([store], extra=["--tau", str(tau)]) as server:
+            from bench.machine import split_cores
+
+            results["cores"] = split_cores(server.proc.pid) if pin else {}
             tick("runs", 0, len(specs))
-            for i, spec in enumerate(specs):
-                run, traces = run_one(server.url, scene, spec, duration=duration, viewport=viewport, fov_y=fov_y,
-                                      warmup=warmup, max_fps=max_fps)
-                results["runs"].append(run)
-                if quality:
-                    if spec.target_ms == float(target_ms):
-                        for k, t in at_views.items():
-                            near[k][spec.method.name] = _nearest(traces, t)
-                    path = Path(spill) / f"run{i:03d}.pickle"
-                    with open(path, "wb") as f:
-                        pickle.dump(traces, f, protocol=pickle.HIGHEST_PROTOCOL)
-                    spilled.append(path)
-                del traces
-                tick("runs", i + 1, len(specs))
+            try:
+                for i, spec in enumerate(specs):
+                    run, traces = run_one(server.url, scene, spec, duration=duration, viewport=viewport,
+                                          fov_y=fov_y, warmup=warmup, max_fps=max_fps, algorithms=algorithms)
+                    results["runs"].append(run)
+                    _spill(results, spec, traces, i, spill, spilled, near, at_views, quality, target_ms)
+                    del traces
+                    tick("runs", i + 1, len(specs))
+            finally:
+                if mine is not None and results["cores"]:
+                    os.sched_setaffinity(0, mine)
         if quality:
             _measure_quality(results, spilled, near, store, viewport, fov_y, every, warmup, seed,
                              None if out is None else Path(out), tick, samples=samples, workers=workers)
     return jsonable(results)
+
+
+def _spill(results, spec, traces, i, spill, spilled, near, at_views, quality, target_ms) -> None:
+    """Keep a run's traces on disk for the quality pass, and the first repeat's nearest traces to A and C
+    (the governor's runs aside: the level images show each method's plan)."""
+    if not quality:
+        return
+    if spec.target_ms == float(target_ms) and spec.repeat == 0 and not spec.governor:
+        for k, t in at_views.items():
+            near[k][spec.method.name] = _nearest(traces, t)
+    path = Path(spill) / f"run{i:03d}.pickle"
+    with open(path, "wb") as f:
+        pickle.dump(traces, f, protocol=pickle.HIGHEST_PROTOCOL)
+    spilled.append(path)
 
 
 def _measure_quality(results: dict, spilled: list[Path], near: dict, store: Path, viewport, fov_y: float,
@@ -447,12 +499,23 @@ def _quality_job(store: str, viewport: tuple, fov_y: float, spilled: str, every:
 
 
 def table_rows(results: Mapping[str, Any], target_ms: float | None = None) -> list[dict]:
-    """One row per method at ``target_ms`` (default the headline target), in ``METHODS`` order."""
+    """One row per method at ``target_ms`` (default the headline target), in ``METHODS`` order, a method's
+    run with the governor after it ("+gov"); each the median of its repeats by mean frame time (as
+    ``bench.report.results.run_at`` picks it)."""
     target = float(results["target_ms"] if target_ms is None else target_ms)
     order = {name: i for i, name in enumerate(METHODS)}
-    rows = [r for r in results["runs"] if float(r["target_ms"]) == target]
-    rows.sort(key=lambda r: order.get(r["method"], len(order)))
-    return [{"method": r["method"], "target_ms": target, **r["summary"]} for r in rows]
+    groups: dict[tuple[str, bool], list] = {}
+    for r in results["runs"]:
+        free = not r.get("budget_dependent", METHODS.get(r["method"], METHODS["none"]).budget_dependent)
+        if free or float(r["target_ms"]) == target:
+            groups.setdefault((r["method"], bool(r.get("governor", False))), []).append(r)
+    rows = []
+    for (method, governor), runs in sorted(groups.items(), key=lambda kv: (order.get(kv[0][0], len(order)), kv[0][1])):
+        runs = sorted(runs, key=lambda r: (r["summary"].get("frame_mean_ms") is None,
+                                           r["summary"].get("frame_mean_ms") or 0.0))
+        median = runs[(len(runs) - 1) // 2]
+        rows.append({"method": f"{method}+gov" if governor else method, "target_ms": target, **median["summary"]})
+    return rows
 
 
 def _fmt(v, digits: int = 1) -> str:

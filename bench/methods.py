@@ -10,14 +10,17 @@
 - ``predictive`` — Zach 2002: the hierarchical solver, selecting for the
   *predicted* camera path with the conservative camera, and geomorphing
   between levels.
-- ``mixed`` — Zach, Mantler & Karner 2002: meshes and terrain (the flat view, F&S accuracy) plus the
+- ``mixed`` — Zach, Mantler & Karner 2002: meshes and terrain (the flat view, screen-space error accuracy) plus the
   continuous resolution of tree groups, predicted and morphed; only where the
   scene has tree groups.
 
 ``predict=False`` means the session selects for the client's latest reported
 pose alone (``Session._interval``: one view, widened by ``margin_deg``) — what
 F&S's frame-by-frame methods see; ``morph=False`` means a new selection takes
-over at its switch time at once (no morph window τ before it, no morph maps
+over at its switch time at once (no morph window τ before it, no morph maps).
+
+The evaluation runs every budget-dependent method without and with the client's
+frame governor (``hello.governor``, ``bench.evaluate.RunSpec.governor``).
 """
 
 from __future__ import annotations

@@ -9,10 +9,11 @@ from typing import Any
 
 import numpy as np
 
-from bench.report.results import budget_free, finite, method_order, nearly_equal, run_at, target_of
+from bench.report.results import budget_free, finite, label, method_order, nearly_equal, run_at, target_of
 
 __all__ = [
-    "STD_RATIO_LIMIT", "MAX_RATIO_LIMIT", "quality_points", "pareto", "pareto_miss", "point_label", "verdict_word",
+    "STD_RATIO_LIMIT", "MAX_RATIO_LIMIT", "GOVERNOR_MEAN_LIMIT", "GOVERNOR_P99_LIMIT", "GOVERNOR_OVER_LIMIT",
+    "GOVERNOR_FLIP_LIMIT", "quality_points", "pareto", "pareto_miss", "point_label", "verdict_word",
     "bound_frames", "checks",
 ]
 
@@ -20,6 +21,12 @@ __all__ = [
 #: The done-when limits: Optimization's std ≤ a third of Static's and Feedback's, max ≤ 1.10 × target.
 STD_RATIO_LIMIT = 1.0 / 3.0
 MAX_RATIO_LIMIT = 1.10
+#: The governor's limits: mean frame ≥ 0.85 × target where full detail exceeds it, p99 ≤ 1.15 × target,
+#: ≤ 1 % of frames over 1.1 × target, and FLIP ≤ 0.75 × Optimization's without the governor.
+GOVERNOR_MEAN_LIMIT = 0.85
+GOVERNOR_P99_LIMIT = 1.15
+GOVERNOR_OVER_LIMIT = 0.01
+GOVERNOR_FLIP_LIMIT = 0.75
 
 
 #: Relative slack on the limits, so a figure exactly at a limit passes despite float rounding.
@@ -27,22 +34,28 @@ _REL_EPS = 1e-9
 
 
 def quality_points(results: dict) -> list[dict]:
-    """Every (method, budget) run as a point: method, budget_ms (None if budget-free), frame_mean_ms,
-    flip_mean, psnr_mean, ssim_mean (None where not measured). A budget-free method gives one point."""
+    """Every (method, budget) run as a point — the median of its repeats (``run_at``), with the governor as
+    its own method (``label``) — method, budget_ms (None if budget-free), frame_mean_ms, flip_mean,
+    psnr_mean, ssim_mean (None where not measured). A budget-free method gives one point."""
     points = []
+    runs = results.get("runs") or []
     for method in method_order(results):
-        for run in results.get("runs") or []:
-            if run.get("method") != method:
-                continue
-            s = run.get("summary") or {}
-            points.append({
-                "method": method,
-                "budget_ms": None if budget_free(run) else finite(run.get("target_ms")),
-                "frame_mean_ms": finite(s.get("frame_mean_ms")),
-                "flip_mean": finite(s.get("flip_mean")),
-                "psnr_mean": s.get("psnr_mean"),
-                "ssim_mean": finite(s.get("ssim_mean")),
-            })
+        for governor in (False, True):
+            mine = [r for r in runs if r.get("method") == method and bool(r.get("governor", False)) == governor]
+            budgets = list(dict.fromkeys(float(r["target_ms"]) for r in mine if finite(r.get("target_ms")) is not None))
+            for budget in sorted(budgets)[:1] if mine and budget_free(mine[0]) else sorted(budgets):
+                run = run_at(results, method, budget, governor)
+                if run is None:
+                    continue
+                s = run.get("summary") or {}
+                points.append({
+                    "method": label(method, governor),
+                    "budget_ms": None if budget_free(run) else finite(run.get("target_ms")),
+                    "frame_mean_ms": finite(s.get("frame_mean_ms")),
+                    "flip_mean": finite(s.get("flip_mean")),
+                    "psnr_mean": s.get("psnr_mean"),
+                    "ssim_mean": finite(s.get("ssim_mean")),
+                })
     return points
 
 
@@ -113,16 +126,16 @@ def verdict_word(passed: bool | None) -> str:
     return "SKIP" if passed is None else ("PASS" if passed else "FAIL")
 
 
-def _std_check(name: str, opt: dict | None, ref: dict | None, ref_name: str) -> dict:
+def _std_check(name: str, opt: dict | None, ref: dict | None, ref_name: str, who: str = "optimization") -> dict:
     if opt is None or ref is None:
-        return _skip(name, f"no {'optimization' if opt is None else ref_name} run at the target")
+        return _skip(name, f"no {who if opt is None else ref_name} run at the target")
     o, r = finite(opt.get("frame_std_ms")), finite(ref.get("frame_std_ms"))
     if o is None or r is None:
         return _skip(name, "frame-time std not measured")
     ratio = o / r if r > 0 else (0.0 if o == 0 else math.inf)
     passed = o <= STD_RATIO_LIMIT * r * (1 + _REL_EPS) + 1e-12
     miss = "" if passed else f", misses by {ratio / STD_RATIO_LIMIT:.2f}× (needs std ≤ {STD_RATIO_LIMIT * r:.2f} ms)"
-    line = (f"{verdict_word(passed)} {name}: optimization std {o:.2f} ms = {ratio:.3f} × {ref_name}'s {r:.2f} ms "
+    line = (f"{verdict_word(passed)} {name}: {who} std {o:.2f} ms = {ratio:.3f} × {ref_name}'s {r:.2f} ms "
             f"(limit {STD_RATIO_LIMIT:.3f}){miss}")
     return _check(name, passed, ratio, STD_RATIO_LIMIT, line)
 
@@ -170,8 +183,8 @@ def bound_frames(results: dict, target_ms: float | None = None) -> dict | None:
     to spend the budget on — so the std measures the stretch as much as the method. Over the frames where
     full detail exceeds the target, a method that holds the budget shows a steady time. Frames are those after the
     warm-up that draw a selection; None's time at t is interpolated between its frames. Returns
-    {"share": share of the optimization run's frames that are bound, "methods": {method: {frames,
-    frame_mean_ms, frame_std_ms, frame_max_ms}}}, or None without a ``none`` run.
+    {"share": share of the optimization run's frames that are bound, "methods": {method (``label``: "+gov"
+    with the governor): {frames, frame_mean_ms, frame_std_ms, frame_max_ms}}}, or None without a ``none`` run.
     """
     target = target_of(results, target_ms)
     ref = run_at(results, "none", target)
@@ -187,8 +200,8 @@ def bound_frames(results: dict, target_ms: float | None = None) -> dict | None:
         return None
     rt, rms = rt[keep], rms[keep]
     out: dict[str, Any] = {"methods": {}, "share": None}
-    for method in method_order(results):
-        run = run_at(results, method, target)
+    for method, governor in [(m, g) for m in method_order(results) for g in (False, True)]:
+        run = run_at(results, method, target, governor)
         f = (run or {}).get("frames") or {}
         if not f.get("t"):
             continue
@@ -198,13 +211,13 @@ def bound_frames(results: dict, target_ms: float | None = None) -> dict | None:
         use = (t >= warmup) & (seq >= 0) & (t >= rt[0]) & (t <= rt[-1])
         bound = use & (np.interp(t, rt, rms) > target)
         v = ms[bound]
-        out["methods"][method] = {
+        out["methods"][label(method, governor)] = {
             "frames": int(bound.sum()),
             "frame_mean_ms": float(v.mean()) if v.size else None,
             "frame_std_ms": float(v.std()) if v.size else None,
             "frame_max_ms": float(v.max()) if v.size else None,
         }
-        if method == "optimization" and use.any():
+        if method == "optimization" and not governor and use.any():
             out["share"] = float(bound.sum() / use.sum())
     return out
 
@@ -216,7 +229,11 @@ def checks(results: dict) -> list[dict]:
       limit 1/3 (at the limit passes);
     - ``opt_max``: value = Optimization's max frame time ÷ target, limit 1.10;
     - ``opt_std_bound_vs_static`` / ``opt_std_bound_vs_feedback``: the std checks over the frames where full
-      detail exceeds the target (``bound_frames``; beyond the headline checks: where the budget binds);
+      detail exceeds the target (``bound_frames``; beyond the headline checks: where the budget binds), for
+      Optimization with the client's frame governor (without it when the eval ran no governor);
+    - ``governor_mean_bound``: Optimization with the governor, mean frame ÷ target over those frames, ≥ 0.85;
+    - ``governor_p99``: its p99 ÷ target, ≤ 1.15; ``governor_over``: its share of frames over 1.1 × target,
+      ≤ 0.01; ``governor_flip_ratio``: its mean FLIP ÷ Optimization's without the governor, ≤ 0.75;
     - ``opt_pareto`` / ``pred_pareto``: the method's point at the target against every (method, budget)
       point of the quality chart; value = the smallest relative improvement of frame time or FLIP that
       puts it on the front (0 on it), limit 0; ``budgets`` gives that figure for each of its budgets.
@@ -243,20 +260,63 @@ def checks(results: dict) -> list[dict]:
                           f"{verdict_word(passed)} opt_max: optimization max {mx:.1f} ms = {ratio:.3f} × target "
                           f"{target:g} ms (limit {MAX_RATIO_LIMIT:.2f}){miss}"))
     bound = bound_frames(results, target)
+    gov = run_at(results, "optimization", target, governor=True)
+    who = "optimization+gov" if gov is not None else "optimization"
     for ref_name in ("static", "feedback"):
         name = f"opt_std_bound_vs_{ref_name}"
         by = (bound or {}).get("methods", {})
         if bound is None:
             out.append(_skip(name, "no none run to tell where full detail exceeds the target"))
             continue
-        c = _std_check(name, by.get("optimization"), by.get(ref_name), ref_name)
+        c = _std_check(name, by.get(who), by.get(ref_name), ref_name, who)
         if c["passed"] is not None:
             share = bound["share"]
             c["line"] += (f" — over the frames where full detail exceeds the target"
                           + ("" if share is None else f" ({100 * share:.0f} % of optimization's)"))
             c["share"] = share
         out.append(c)
+    out += _governor_checks(gov, opt, (bound or {}).get("methods", {}).get("optimization+gov"), bound, target)
     points = quality_points(results)
     out.append(_pareto_check("opt_pareto", "optimization", points, target))
     out.append(_pareto_check("pred_pareto", "predictive", points, target))
     return out
+
+
+def _limit_check(name: str, value: float | None, limit: float, at_least: bool, what: str, why: str) -> dict:
+    """A figure against a limit (``at_least``: value ≥ limit passes, else value ≤ limit), or a skip."""
+    if value is None:
+        return _skip(name, why)
+    passed = value >= limit * (1 - _REL_EPS) if at_least else value <= limit * (1 + _REL_EPS)
+    sign = "≥" if at_least else "≤"
+    miss = "" if passed else f", misses by {abs(value - limit):.3f}"
+    return _check(name, bool(passed), value, limit,
+                  f"{verdict_word(passed)} {name}: {what} = {value:.3f} (limit {sign} {limit:g}){miss}")
+
+
+def _governor_checks(gov: dict | None, opt: dict | None, gov_bound: dict | None, bound: dict | None,
+                     target: float) -> list[dict]:
+    """The governor's checks: mean where full detail exceeds the target, p99, share over, FLIP against
+    Optimization without the governor."""
+    names = ("governor_mean_bound", "governor_p99", "governor_over", "governor_flip_ratio")
+    if gov is None:
+        return [_skip(n, "no optimization run with the governor at the target") for n in names]
+    s = gov.get("summary") or {}
+    mean = finite((gov_bound or {}).get("frame_mean_ms"))
+    p99, over = finite(s.get("frame_p99_ms")), finite(s.get("over_pct"))
+    flip = finite(s.get("flip_mean"))
+    base = finite(((opt or {}).get("summary") or {}).get("flip_mean"))
+    flip_ratio = None if flip is None or base is None or base <= 0 else flip / base
+    why_bound = ("no none run to tell where full detail exceeds the target" if bound is None
+                 else "no frames where full detail exceeds the target")
+    return [
+        _limit_check(names[0], None if mean is None else mean / target, GOVERNOR_MEAN_LIMIT, True,
+                     f"optimization+gov mean {mean or 0:.1f} ms ÷ target {target:g} ms where full detail exceeds it",
+                     why_bound),
+        _limit_check(names[1], None if p99 is None else p99 / target, GOVERNOR_P99_LIMIT, False,
+                     f"optimization+gov p99 {p99 or 0:.1f} ms ÷ target {target:g} ms", "p99 not measured"),
+        _limit_check(names[2], None if over is None else over / 100.0, GOVERNOR_OVER_LIMIT, False,
+                     f"optimization+gov share of frames over {MAX_RATIO_LIMIT:.2f} × target", "share not measured"),
+        _limit_check(names[3], flip_ratio, GOVERNOR_FLIP_LIMIT, False,
+                     f"optimization+gov FLIP {flip or 0:.4f} ÷ optimization's {base or 0:.4f}",
+                     "FLIP not measured for optimization with and without the governor"),
+    ]

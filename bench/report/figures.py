@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.report.checks import MAX_RATIO_LIMIT, pareto, point_label, quality_points
-from bench.report.results import finite, method_order, run_at, target_of
+from bench.report.results import finite, label, method_order, run_at, target_of
 from bench.report.table import fmt_cell
 
 __all__ = ["PSNR_CAP", "write_traces", "write_quality"]
@@ -62,19 +62,23 @@ def write_traces(results: dict, path: Path, target_ms: float | None = None) -> P
     """
     target = target_of(results, target_ms)
     series = []
-    for method in method_order(results):
-        run = run_at(results, method, target)
+    calibration = []
+    for method, governor in [(m, g) for m in method_order(results) for g in (False, True)]:
+        run = run_at(results, method, target, governor)
         frames = (run or {}).get("frames") or {}
         t, ms = np.asarray(frames.get("t") or [], float), np.asarray(frames.get("time_ms") or [], float)
         if t.size and t.size == ms.size:
-            series.append((method, t, ms, (run.get("summary") or {})))
+            series.append((label(method, governor), t, ms, (run.get("summary") or {})))
+            c = run.get("calibration") or {}
+            if c.get("t") and len(c["t"]) == len(c.get("ms") or []):
+                calibration.append((label(method, governor), np.asarray(c["t"], float), np.asarray(c["ms"], float)))
     if not series:
         return None
     plt = _pyplot()
     peak = max(float(np.nanmax(ms)) for _, _, ms, _ in series)
     top = max(1.5 * target, min(1.05 * peak, 4.0 * target))
-    fig, axes = plt.subplots(len(series), 1, sharex=True, sharey=True, figsize=(10, 1.25 + 1.45 * len(series)), dpi=110,
-                             squeeze=False)
+    panels = len(series) + (1 if calibration else 0)
+    fig, axes = plt.subplots(panels, 1, sharex=True, figsize=(10, 1.25 + 1.45 * panels), dpi=110, squeeze=False)
     warm = finite(results.get("warmup_s")) or 0.0
     viewpoints = {k: v for k, v in (results.get("viewpoints") or {}).items() if finite(v) is not None}
     for k, (ax, (method, t, ms, summary)) in enumerate(zip(axes[:, 0], series)):
@@ -97,7 +101,20 @@ def write_traces(results: dict, path: Path, target_ms: float | None = None) -> P
                 fontsize=8, bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.8", alpha=0.85))
         ax.grid(alpha=0.3)
         ax.set_ylabel("ms")
-    axes[0, 0].set_ylim(0, top)
+    for ax in axes[:len(series), 0]:
+        ax.set_ylim(0, top)
+    if calibration:
+        ax = axes[-1, 0]
+        for k, (name, t, ms) in enumerate(calibration):
+            ax.plot(t, ms, lw=0.8, marker=".", ms=3, color=_colour(name.split("+")[0], k), label=name,
+                    ls="--" if name.endswith("+gov") else "-")
+        ax.set_yscale("log")
+        ax.set_ylabel("calib. ms")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, ncol=4, loc="upper right")
+        ax.text(0.005, 0.95, "calibration workload beside each run (the machine's speed; lower is faster)",
+                transform=ax.transAxes, ha="left", va="top", fontsize=8,
+                bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.8", alpha=0.85))
     axes[-1, 0].set_xlabel("client time (s)")
     fig.suptitle(f"Frame time per method at target {target:g} ms (dashed) and 1.10 × target (dotted) — "
                  f"{results.get('scene', '')}", fontsize=10)

@@ -10,6 +10,8 @@ import json
 from pathlib import Path
 from typing import Iterable, Sequence
 
+import numpy as np
+
 from bench.jsonable import jsonable
 from bench.report.checks import checks, verdict_word
 from bench.report.figures import write_quality, write_traces
@@ -39,8 +41,29 @@ def summary_lines(results: dict) -> list[str]:
     rows = table1(results)
     lines = [f"Table 1 — {results.get('scene', '?')}, target {target:g} ms (times in ms)"]
     lines += _text_table(table_headings(), [row_cells(r) for r in rows]) if rows else ["(no runs at the target)"]
+    lines += _setup_lines(results)
     lines += [""] + [c["line"] for c in checks(results)]
     return lines
+
+
+def _setup_lines(results: dict) -> list[str]:
+    """How the runs were made: the one rendering algorithm, the repeats, the cores, the calibration."""
+    out = []
+    if results.get("algorithms"):
+        out.append(f"every method draws with the same rendering algorithm: {', '.join(results['algorithms'])}")
+    if results.get("repeats"):
+        out.append(f"{results['repeats']} repeat(s) of every run, interleaved; each row is the median repeat")
+    cores = results.get("cores") or {}
+    if cores:
+        out.append(f"server on core(s) {cores.get('server')}, client on core(s) {cores.get('client')}")
+    elif "cores" in results:
+        out.append("server and client share the cores (fewer than 2, or pinning off)")
+    calib = [c for r in results.get("runs") or [] for c in (r.get("calibration") or {}).get("ms") or []]
+    if calib:
+        q = np.percentile(calib, [5, 50, 95])
+        out.append(f"calibration workload beside the runs: median {q[1]:.2f} ms, 5–95 % {q[0]:.2f}–{q[2]:.2f} ms "
+                   f"({q[2] / q[1]:.2f} × the median at the 95th percentile)")
+    return out
 
 
 def _rel(src: str | Path, out: Path) -> str:
@@ -176,7 +199,7 @@ def write_index(results: dict, out: Path, *, rows: Sequence[dict], results_check
 
 
 _SETTINGS = ("scene", "store", "target_ms", "budgets_ms", "methods", "skipped", "viewport", "fov_y", "tau_s", "seed",
-             "duration_s", "warmup_s", "viewpoints")
+             "duration_s", "warmup_s", "viewpoints", "repeats", "governor", "algorithms", "cores")
 
 
 def _settings(results: dict) -> Iterable[tuple[str, str]]:

@@ -1,5 +1,7 @@
 """Reading the evaluation's results dict: the methods in Table 1's order, the headline target, and the
-run of a method at a budget (a budget-free method's only run counts for every budget).
+run of a method at a budget (a budget-free method's only run counts for every budget). A run is with or
+without the client's frame governor (``governor``) and one of several repeats (``repeat``): a method's
+run at a budget is the median of its repeats by mean frame time, and ``repeats_at`` gives them all.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from bench.methods import METHODS
 
 __all__ = [
     "METHOD_ORDER", "BUDGET_FREE", "finite", "nearly_equal", "method_order", "target_of", "budget_free", "run_at",
+    "repeats_at", "label",
 ]
 
 
@@ -55,11 +58,27 @@ def budget_free(run: dict) -> bool:
     return (not flag) if isinstance(flag, bool) else run.get("method") in BUDGET_FREE
 
 
-def run_at(results: dict, method: str, target_ms: float) -> dict | None:
-    """The method's run at ``target_ms``; a budget-free method's only run counts for every budget."""
-    runs = [r for r in results.get("runs") or [] if r.get("method") == method]
-    for run in runs:
-        if finite(run.get("target_ms")) is not None and nearly_equal(run["target_ms"], target_ms):
-            return run
-    free = [r for r in runs if budget_free(r)]
-    return free[0] if free else None
+def label(method: str, governor: bool) -> str:
+    """A row's name: the method, with "+gov" when the client's frame governor ran."""
+    return f"{method}+gov" if governor else method
+
+
+def repeats_at(results: dict, method: str, target_ms: float, governor: bool = False) -> list[dict]:
+    """Every repeat of the method's run at ``target_ms`` (a budget-free method's runs count for every budget)."""
+    runs = [r for r in results.get("runs") or []
+            if r.get("method") == method and bool(r.get("governor", False)) == bool(governor)]
+    at = [r for r in runs if finite(r.get("target_ms")) is not None and nearly_equal(r["target_ms"], target_ms)]
+    return at or [r for r in runs if budget_free(r)]
+
+
+def run_at(results: dict, method: str, target_ms: float, governor: bool = False) -> dict | None:
+    """The method's run at ``target_ms`` — the median of its repeats by mean frame time (the lower median of an
+    even count); a budget-free method's runs count for every budget."""
+    runs = repeats_at(results, method, target_ms, governor)
+    if not runs:
+        return None
+    if len(runs) == 1:
+        return runs[0]
+    key = [finite((r.get("summary") or {}).get("frame_mean_ms")) for r in runs]
+    order = sorted(range(len(runs)), key=lambda i: (key[i] is None, key[i] or 0.0, i))
+    return runs[order[(len(runs) - 1) // 2]]

@@ -11,7 +11,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bench.report.results import method_order, run_at, target_of
+from bench.report.results import finite, label, method_order, repeats_at, run_at, target_of
 
 __all__ = ["COLUMNS", "table1", "fmt_cell", "table_headings", "row_cells", "write_table1"]
 
@@ -32,22 +32,30 @@ COLUMNS: tuple[tuple[str, str, int], ...] = (
     ("popping_mean", "popping", 3),
     ("triangles_mean", "triangles", 0),
     ("frames", "frames", 0),
+    ("frame_mean_spread_ms", "spread of mean (repeats)", 1),
+    ("repeats", "repeats", 0),
+    ("calibration_median_ms", "calibration", 2),
 )
 
 
 def table1(results: dict, target_ms: float | None = None) -> list[dict]:
-    """One row per method at ``target_ms`` (default the headline target), in F&S Table 1's order.
+    """One row per method at ``target_ms`` (default the headline target), in F&S Table 1's order, a
+    budget-dependent method's run with the client's frame governor after it (``method+gov``).
 
-    Each row: ``method`` plus every key of :data:`COLUMNS`, copied from the run's summary (times in
-    ms); a figure the run did not measure (no image quality, say) is None. Methods without a run at
-    the target are left out.
+    Each row: ``method`` plus every key of :data:`COLUMNS`, copied from the median repeat's summary
+    (``results.run_at``; times in ms), with the spread (max − min) of the repeats' mean frame times and
+    their count; a figure the run did not measure (no image quality, say) is None. Methods without a run
+    at the target are left out.
     """
     target = target_of(results, target_ms)
     rows = []
-    for method in method_order(results):
-        run = run_at(results, method, target)
+    for method, governor in [(m, g) for m in method_order(results) for g in (False, True)]:
+        run = run_at(results, method, target, governor)
         if run is None:
             continue
+        means = [finite((r.get("summary") or {}).get("frame_mean_ms"))
+                 for r in repeats_at(results, method, target, governor)]
+        means = [v for v in means if v is not None]
         summary = run.get("summary") or {}
         if any(key not in summary for key, _, _ in COLUMNS) and (run.get("frames") or {}).get("t"):
             # Figures added to the summary since the run (p99, over 1.1 × target) come from its frames.
@@ -55,12 +63,15 @@ def table1(results: dict, target_ms: float | None = None) -> list[dict]:
 
             summary = {**summarize_frames(run["frames"], float(results.get("warmup_s") or 0.0),
                                           float(run.get("target_ms") or target)), **summary}
-        row: dict[str, Any] = {"method": method}
+        summary = {**summary, "repeats": len(means),
+                   "frame_mean_spread_ms": (max(means) - min(means)) if means else None}
+        row: dict[str, Any] = {"method": label(method, governor)}
         for key, _, _ in COLUMNS:
             value = summary.get(key)
-            row[key] = value if key == "frames" or value is None else float(value)
-        if row["frames"] is not None:
-            row["frames"] = int(row["frames"])
+            row[key] = value if key in ("frames", "repeats") or value is None else float(value)
+        for key in ("frames", "repeats"):
+            if row[key] is not None:
+                row[key] = int(row[key])
         rows.append(row)
     return rows
 
@@ -107,6 +118,8 @@ def write_table1(rows: Sequence[dict], out: Path, *, title: str | None = None) -
     lines += ["| " + " | ".join(row_cells(row)) + " |" for row in rows]
     lines += ["", "Times in milliseconds; frame figures over the frames after the warm-up. FLIP: mean LDR-FLIP "
               "against the full-detail frame (lower is better); popping: excess frame-to-frame change over "
-              "the full-detail sequence (lower is better)."]
+              "the full-detail sequence (lower is better). Each row is the median of its repeats by mean frame time; "
+              "spread: max − min of the repeats' means; calibration: the median time of the fixed workload timed "
+              "every second beside the run; +gov: with the client's frame governor."]
     md_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return csv_path, md_path

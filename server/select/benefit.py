@@ -6,7 +6,9 @@ Size is the pixels the object covers; every other factor is a multiplier in
 (0, 1] that can only take benefit away (F&S keep them in [0, 1]; here they
 never reach 0, so a drawn object is always worth something and values stay
 finite). Accuracy is F&S's 1 − BaseError / Samples^m, with Samples and m set
-by the rendering algorithm, or Zach's face-density ratio. Everything is arrays
+by the rendering algorithm, Zach's face-density ratio, or the screen-space
+error: each level's stored geometric error projected to pixels (as Cesium and
+Nanite select by it), 1 / (1 + error in pixels). Everything is arrays
 over all candidate tuples at once: (n,) per object, (n, K) per option, where
 option k is level k // R with algorithm k % R (see ``solvers.candidates``).
 """
@@ -26,10 +28,13 @@ __all__ = [
     "ALGORITHM_SAMPLES",
     "MIN_FACTOR",
     "ACCURACY_MODES",
+    "DEFAULT_ACCURACY",
     "resolved_accuracy",
     "accuracy",
     "algorithm_accuracy",
     "zach_accuracy",
+    "projected_error",
+    "screen_error_accuracy",
     "original_faces",
     "importance",
     "importance_table",
@@ -52,7 +57,11 @@ ALGORITHM_EXPONENT = {"flat": 1.0, "lit": 2.0, "textured": 2.0}
 ALGORITHM_SAMPLES = {"flat": "faces", "lit": "vertices", "textured": "vertices"}
 
 #: ``BenefitFactors.accuracy`` values; "auto" lets the view choose (``resolved_accuracy``).
-ACCURACY_MODES = ("auto", "fs", "zach", "off")
+ACCURACY_MODES = ("auto", "fs", "zach", "sse", "off")
+
+#: What "auto" accuracy means where the levels' geometric errors are known: the simplest model whose
+#: rank correlation with the measured image error is within 10 % of the best (``bench benefit``).
+DEFAULT_ACCURACY = "sse"
 
 #: The floor of every qualitative factor: a multiplier in (0, 1] never reaches 0.
 MIN_FACTOR = 1e-3
@@ -110,6 +119,30 @@ def zach_accuracy(screen_size: np.ndarray, faces: np.ndarray, original_faces: np
     f = np.maximum(np.asarray(faces, np.float64), 1.0)
     o = np.maximum(np.asarray(original_faces, np.float64), 1.0)
     return np.maximum(1.0, s / o) / np.maximum(1.0, s / f)
+
+
+def projected_error(error: np.ndarray, size: np.ndarray, extent: np.ndarray) -> np.ndarray:
+    """Pixels a level's object-space geometric error spans on screen, from the object's projected size.
+
+    error  : object-space geometric error of each option (``SceneIndex.rep_error``), (n, K) or (n,)
+    size   : (n,) pixels the object's box covers (``camera.screen_size``)
+    extent : (n,) the box's diagonal, object-space units
+    The box's diagonal spans about √(2·size) pixels at the object's distance, so a length e
+    spans e / extent · √(2·size): the distance and the projection come in through the size.
+    """
+    err = np.maximum(np.asarray(error, np.float64), 0.0)
+    size = np.maximum(np.asarray(size, np.float64), 0.0)
+    extent = np.maximum(np.asarray(extent, np.float64), 1e-12)
+    per = np.sqrt(2.0 * size) / extent
+    if per.ndim == err.ndim - 1:
+        per = per[..., None]
+    return err * per
+
+
+def screen_error_accuracy(error_px: np.ndarray) -> np.ndarray:
+    """1 / (1 + error in pixels), in (0, 1]: full detail (no error) is 1, a level whose error spans one
+    pixel is worth half its size; diminishing returns as the error shrinks below a pixel."""
+    return 1.0 / (1.0 + np.maximum(np.asarray(error_px, np.float64), 0.0))
 
 
 def original_faces(finest: np.ndarray, parent: np.ndarray | None = None) -> np.ndarray:
@@ -222,7 +255,7 @@ def hysteresis(
 class BenefitFactors:
     """Which factors of the F&S product are on, and how strongly each bites.
 
-    accuracy : "fs" (1 − 0.5/Samples^m), "zach" (face density), "off", or "auto" (the default:
+    accuracy : "fs" (1 − 0.5/Samples^m), "zach" (face density), "sse" (screen-space error), "off", or "auto" (the default:
         "zach" on the hierarchical view, "fs" on the flat one — see the module docstring)
     exponent : m per rendering algorithm name (F&S accuracy)
     *_strength / *_weight : slope of each qualitative factor; defaults are mild so that
@@ -260,8 +293,9 @@ class BenefitFactors:
             raise ValueError(f"no accuracy exponent for algorithms {missing}")
 
 
-def resolved_accuracy(factors: BenefitFactors, hierarchical: bool = False) -> BenefitFactors:
-    """``factors`` with "auto" accuracy made concrete: "zach" for the hierarchical view, else "fs".
+def resolved_accuracy(factors: BenefitFactors, hierarchical: bool = False, errors: bool = False) -> BenefitFactors:
+    """``factors`` with "auto" accuracy made concrete: ``DEFAULT_ACCURACY`` where the view holds its levels'
+    geometric errors (``errors``), else "zach" for the hierarchical view and "fs" for the flat one.
 
     An explicit setting is returned unchanged. The resolved copies are kept on
     ``factors`` (a session passes the same object every τ; validating a new one costs ~50 µs).
@@ -269,9 +303,11 @@ def resolved_accuracy(factors: BenefitFactors, hierarchical: bool = False) -> Be
     if factors.accuracy != "auto":
         return factors
     cache = vars(factors).setdefault("_resolved", {})
-    if hierarchical not in cache:
-        cache[hierarchical] = replace(factors, accuracy="zach" if hierarchical else "fs")
-    return cache[hierarchical]
+    key = (hierarchical, errors)
+    if key not in cache:
+        mode = DEFAULT_ACCURACY if errors else ("zach" if hierarchical else "fs")
+        cache[key] = replace(factors, accuracy=mode)
+    return cache[key]
 
 
 def benefit_matrix(
@@ -287,6 +323,8 @@ def benefit_matrix(
     offset: np.ndarray | None = None,
     speed: np.ndarray | None = None,
     previous: np.ndarray | None = None,
+    error: np.ndarray | None = None,
+    extent: np.ndarray | None = None,
 ) -> np.ndarray:
     """(n, K) float64 Benefit = Size · Accuracy · Importance · Focus · Motion · Hysteresis.
 
@@ -299,6 +337,7 @@ def benefit_matrix(
     offset : (n,) distance from the screen centre in [0, 1] — Focus
     speed : (n,) apparent screen speed, px/s — Motion (against each option's average polygon)
     previous : (n,) option drawn last time, −1 none — Hysteresis
+    error, extent : (n, K) object-space geometric error of each option, (n,) box diagonal — "sse" accuracy
     A factor is skipped when switched off in ``factors`` or when its input is None; "auto" accuracy
     is F&S's here (the selection resolves it per view, ``resolved_accuracy``).
     """
@@ -316,6 +355,10 @@ def benefit_matrix(
     elif factors.accuracy == "zach":
         orig = faces.max(axis=1) if original_faces is None else np.asarray(original_faces, np.float64)
         out *= zach_accuracy(size[:, None], faces, orig[:, None])
+    elif factors.accuracy == "sse":
+        if error is None or extent is None:
+            raise ValueError("screen-space error accuracy needs each option's error and the objects' extent")
+        out *= screen_error_accuracy(projected_error(error, size, extent))
     if factors.importance and object_class is not None and importance_table is not None:
         out *= importance(object_class, importance_table)[:, None]
     if factors.focus and offset is not None:

@@ -143,16 +143,22 @@ def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=
     weight = np.array([cam.weight for cam in cams], np.float64)
     original = lv.original_faces()[rows] if factors.accuracy == "zach" else None
     kern = _view_kernels()
+    error = extent = None
+    if factors.accuracy == "sse":
+        if lv.rep_error is None:
+            raise ValueError("screen-space error accuracy needs the view's rep_error (Levels.subset of an index)")
+        error = np.where(valid, lv.rep_error[rep], 0.0)
+        extent = np.linalg.norm(lv.object_hi[rows].astype(np.float64) - lv.object_lo[rows], axis=1)
     if kern is not None:
         benefit = benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass,
-                                 scene.importance, previous, original)
+                                 scene.importance, previous, original, error, extent)
     else:
         benefit = np.zeros(faces.shape)
         for j in range(len(cams)):
             benefit += weight[j] * benefit_matrix(
                 size[j], faces, algorithms=r, factors=factors, vertices=vertices, original_faces=original,
                 object_class=klass, importance_table=scene.importance, offset=offset[j], speed=speed[j],
-                previous=previous,
+                previous=previous, error=error, extent=extent,
             )
         benefit = np.where(valid, benefit, 0.0)
     sampled = np.array([cam.sampled for cam in cams])
@@ -198,10 +204,11 @@ def node_size(lv, rows: np.ndarray, size: np.ndarray) -> np.ndarray:
 
 
 def benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass, table, previous,
-                   original=None):
+                   original=None, error=None, extent=None):
     """``benefit_matrix`` summed over the cameras in one compiled pass (same factors, same arithmetic).
 
     original : (v,) Zach's #originalFaces (``benefit_matrix``'s ``original_faces``), None: each row's most faces
+    error, extent : (v, K) geometric error per option and (v,) box diagonals, for "sse" accuracy
     """
     from .benefit import ALGORITHM_SAMPLES, importance
 
@@ -209,7 +216,11 @@ def benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r,
     if r < 1 or r > len(names):
         raise ValueError(f"algorithms must be in 1..{len(names)}, got {r}")
     mode = {"off": kern.ACCURACY_OFF, "fs": kern.ACCURACY_FS, "auto": kern.ACCURACY_FS,
-            "zach": kern.ACCURACY_ZACH}[factors.accuracy]
+            "zach": kern.ACCURACY_ZACH, "sse": kern.ACCURACY_SSE}[factors.accuracy]
+    if mode == kern.ACCURACY_SSE and (error is None or extent is None):
+        raise ValueError("screen-space error accuracy needs each option's error and the rows' extent")
+    err = np.zeros((0, 0)) if error is None else np.ascontiguousarray(error, np.float64)
+    ext = np.zeros(0) if extent is None else np.ascontiguousarray(extent, np.float64)
     orig = np.zeros(0) if original is None else np.ascontiguousarray(original, np.float64)
     if orig.size and orig.shape != faces.shape[:1]:
         raise ValueError(f"original faces must be ({faces.shape[0]},); got {orig.shape}")
@@ -225,7 +236,7 @@ def benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r,
             else np.zeros(0, np.int64))
     out = np.empty(faces.shape)
     kern.benefit_sum(size, off, spd, moving, weight, faces, vertices, valid, per_vertex, exponent, r, mode, orig,
-                     factors.size, imp, factors.focus_strength, factors.motion_strength, factors.frame_time, prev,
+                     err, ext, factors.size, imp, factors.focus_strength, factors.motion_strength, factors.frame_time, prev,
                      factors.level_weight, factors.algorithm_weight, out)
     return out
 

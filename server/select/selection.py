@@ -10,8 +10,10 @@ part of the mixed solver). What a session's selection remembers from one run to
 the next — the options drawn last time (hysteresis, frame coherence), the last
 view (motion), Feedback's threshold — is a ``Memory`` it owns.
 
-Accuracy by view (``BenefitFactors.accuracy = "auto"``, the default): the flat
-view uses F&S's, the hierarchical view Zach's with each node's #originalFaces
+Accuracy by view (``BenefitFactors.accuracy = "auto"``, the default): a view that
+holds its levels' geometric errors (every view of a scene index) uses the
+screen-space error (``benefit.DEFAULT_ACCURACY``, chosen by ``bench benefit``);
+without them the flat view uses F&S's, the hierarchical view Zach's with each node's #originalFaces
 the full-detail faces of its subtree (``Levels.original_faces``), so that
 splitting a coarse HLOD node pays while its faces are far fewer than its pixels.
 """
@@ -48,6 +50,7 @@ class Levels:
     object_class : (n,) int class ids (Importance), or None
     ids    : (n,) int64 scene object ids of these rows (None: 0..n−1)
     parent : (n,) int64 parent row within this view, −1 for roots (hierarchical view), or None
+    rep_error : (m,) object-space geometric error of each representation (screen-space error accuracy), or None
     """
 
     object_lo: np.ndarray
@@ -59,6 +62,7 @@ class Levels:
     object_class: np.ndarray | None = None
     ids: np.ndarray | None = None
     parent: np.ndarray | None = None
+    rep_error: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -76,6 +80,7 @@ class Levels:
         return cls(
             index.object_lo[rows], index.object_hi[rows], index.rep_first[rows], index.rep_count[rows],
             index.rep_faces, index.rep_vertices, index.object_class[rows].astype(np.int64), rows, parent,
+            rep_error=_errors(index),
         )
 
     @classmethod
@@ -108,6 +113,13 @@ class Levels:
             return depth
 
         return options.cached(self, "depth", make)
+
+
+def _errors(index) -> np.ndarray | None:
+    """(m,) float64 the index's geometric errors, or None when it stores none (all zero: an index built
+    without measuring them would make every level look as good as full detail)."""
+    err = np.asarray(getattr(index, "rep_error", np.zeros(0)), np.float64)
+    return err if err.size and bool((err > 0).any()) else None
 
 
 @dataclass(frozen=True)
@@ -252,7 +264,8 @@ def select(
     if isinstance(scene, Levels):
         scene = Scene(flat=scene, n_objects=int(scene.ids.max()) + 1 if scene.ids is not None and scene.n else scene.n)
     factors = _DEFAULT_FACTORS if factors is None else factors  # one, not a new one validated each τ
-    factors = resolved_accuracy(factors, hierarchical=solver in HIERARCHICAL)
+    view_levels = scene.hierarchy if solver in HIERARCHICAL and scene.hierarchy is not None else scene.flat
+    factors = resolved_accuracy(factors, hierarchical=solver in HIERARCHICAL, errors=view_levels.rep_error is not None)
     solve = solvers.get(solver)
     cams = _cameras(view, margin_deg, t)
     if solver in HIERARCHICAL:

@@ -19,11 +19,15 @@ def test_eval_writes_a_report_from_real_runs(demo_store, tmp_path) -> None:
     out = tmp_path / "report"
     done = _walkstream("eval", str(demo_store), "--methods", "static,optimization", "--budgets", "50",
                        "--duration", "4", "--samples", "2", "--scenario", "below_coarsest", "--out", str(out),
-                       "--json")
+                       "--repeats", "1", "--json")
     assert done.returncode == 0, done.stderr[-3000:]
     figures = json.loads(done.stdout.strip().splitlines()[-1])
-    assert [r["method"] for r in figures["table1"]] == ["static", "optimization"]
-    assert {c["name"] for c in figures["checks"]} >= {"opt_std_vs_static", "opt_max", "opt_pareto"}
+    assert [r["method"] for r in figures["table1"]] == ["static", "optimization", "optimization+gov"]
+    names = {c["name"] for c in figures["checks"]}
+    assert names >= {"opt_std_vs_static", "opt_max", "opt_pareto", "governor_mean_bound", "governor_p99",
+                     "governor_over", "governor_flip_ratio", "opt_std_bound_vs_static", "opt_std_bound_vs_feedback"}
+    gov = {c["name"]: c for c in figures["checks"] if c["name"].startswith("governor_")}
+    assert gov["governor_p99"]["passed"] is not None and gov["governor_flip_ratio"]["passed"] is not None
     assert [s["name"] for s in figures["scenarios"]] == ["below_coarsest"]
     assert figures["scenarios"][0]["line"].split()[0] in ("PASS", "FAIL")
     results = json.loads((out / "results.json").read_text())

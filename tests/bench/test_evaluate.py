@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -40,7 +41,7 @@ def _names(specs):
 
 
 def test_plan_runs_baselines_once_others_per_budget_and_drops_mixed_without_trees():
-    specs = plan(None, 50.0, None, continuous=False)
+    specs = plan(None, 50.0, None, continuous=False, governor=False)
     assert _names(specs) == [
         ("none", 50.0), ("static", 50.0),
         ("feedback", 25.0), ("feedback", 50.0), ("feedback", 100.0),
@@ -49,16 +50,25 @@ def test_plan_runs_baselines_once_others_per_budget_and_drops_mixed_without_tree
         ("predictive", 25.0), ("predictive", 50.0), ("predictive", 100.0),
     ]
     assert skipped_methods(None, continuous=False) == {"mixed": "no continuous objects"}
-    with_trees = plan(None, 50.0, None, continuous=True)
+    with_trees = plan(None, 50.0, None, continuous=True, governor=False)
     assert _names(with_trees)[-3:] == [("mixed", 25.0), ("mixed", 50.0), ("mixed", 100.0)]
     assert skipped_methods(None, continuous=True) == {}
 
 
 def test_plan_includes_the_target_among_the_budgets_and_keeps_the_order_given():
-    specs = plan(["optimization", "static"], 40.0, [100.0, 20.0])
+    specs = plan(["optimization", "static"], 40.0, [100.0, 20.0], governor=False)
     assert _names(specs) == [("optimization", 20.0), ("optimization", 40.0), ("optimization", 100.0),
                              ("static", 40.0)]
     assert plan(["static"], 40.0, [100.0]) == [RunSpec(METHODS["static"], 40.0)]
+
+
+def test_plan_runs_budgeted_methods_with_and_without_the_governor_and_interleaves_repeats():
+    specs = plan(["static", "optimization"], 50.0, [50.0], repeats=3)
+    one = [("static", 50.0, False), ("optimization", 50.0, False), ("optimization", 50.0, True)]
+    assert [(s.method.name, s.target_ms, s.governor) for s in specs] == one * 3  # A B C A B C A B C
+    assert [s.repeat for s in specs] == [0, 0, 0, 1, 1, 1, 2, 2, 2]
+    with pytest.raises(ValueError, match="repeats"):
+        plan(["static"], 50.0, None, repeats=0)
 
 
 def test_methods_are_the_issue_s_and_ask_the_sessions_the_papers_way():
@@ -146,7 +156,7 @@ def _recompute(frames: dict, warmup: float) -> dict:
 def test_evaluate_runs_every_spec_on_a_real_server_and_client(demo_store):
     ticks = []
     res = evaluate(demo_store, methods=["none", "static", "optimization"], budgets_ms=[50.0], duration=3.0,
-                   warmup=1.0, viewport=(160, 90), quality=False, progress=lambda *a: ticks.append(a))
+                   warmup=1.0, viewport=(160, 90), quality=False, progress=lambda *a: ticks.append(a), repeats=1)
     assert SCHEMA_TOP <= set(res)
     json.dumps(res, allow_nan=False)  # plain, JSON-serialisable
     assert res["scene"] == "demo" and res["methods"] == ["none", "static", "optimization"]
@@ -157,7 +167,15 @@ def test_evaluate_runs_every_spec_on_a_real_server_and_client(demo_store):
     assert res["duration_s"] == 3.0 and res["seed"] == 0 and res["skipped"] == {}
     specs = plan(res["methods"], 50.0, [50.0], continuous=False)
     assert [(r["method"], r["target_ms"]) for r in res["runs"]] == _names(specs)
-    assert ticks[0] == ("runs", 0, 3) and ticks[-1] == ("runs", 3, 3)
+    assert ticks[0] == ("runs", 0, 4) and ticks[-1] == ("runs", 4, 4)
+    assert [r["governor"] for r in res["runs"]] == [False, False, False, True]
+    assert res["algorithms"] == ["lit"] and res["repeats"] == 1
+    if len(os.sched_getaffinity(0)) >= 2:  # server and client were put on different cores
+        assert res["cores"] and not set(res["cores"]["server"]) & set(res["cores"]["client"])
+    for run in res["runs"]:
+        c = run["calibration"]  # timed once a second beside the run: at least at its start and after 1 s
+        assert len(c["t"]) == len(c["ms"]) >= 2 and all(ms > 0 for ms in c["ms"])
+        assert run["summary"]["calibration_median_ms"] > 0
     for run in res["runs"]:
         assert SCHEMA_RUN <= set(run)
         m = METHODS[run["method"]]
@@ -180,7 +198,7 @@ def test_evaluate_runs_every_spec_on_a_real_server_and_client(demo_store):
         assert s["frame_p95_ms"] == pytest.approx(np.percentile(
             [x for t, q, x in zip(f["t"], f["seq"], f["time_ms"]) if t >= 1.0 and q >= 0], 95))
     # None draws every object at full detail: never fewer triangles than Static, over the same tour
-    by = {r["method"]: r["summary"] for r in res["runs"]}
+    by = {r["method"]: r["summary"] for r in res["runs"] if not r["governor"]}
     assert by["none"]["triangles_mean"] >= by["static"]["triangles_mean"]
 
     from rich.console import Console
@@ -189,7 +207,7 @@ def test_evaluate_runs_every_spec_on_a_real_server_and_client(demo_store):
     print_table(res, console)
     text = console.export_text()
     assert all(name in text for name in res["methods"])
-    assert [r["method"] for r in table_rows(res)] == res["methods"]
+    assert [r["method"] for r in table_rows(res)] == res["methods"] + ["optimization+gov"]
 
 
 def test_evaluate_refuses_bad_settings_before_starting_a_server(demo_store):

@@ -24,9 +24,9 @@ from ..benefit import BASE_ERROR, MIN_FACTOR
 from ..camera import SPEED_LIMIT_NDC
 from .jit import jit
 
-__all__ = ["ACCURACY_OFF", "ACCURACY_FS", "ACCURACY_ZACH", "cull_any", "project", "benefit_sum", "compile_all"]
+__all__ = ["ACCURACY_OFF", "ACCURACY_FS", "ACCURACY_ZACH", "ACCURACY_SSE", "cull_any", "project", "benefit_sum", "compile_all"]
 
-ACCURACY_OFF, ACCURACY_FS, ACCURACY_ZACH = 0, 1, 2
+ACCURACY_OFF, ACCURACY_FS, ACCURACY_ZACH, ACCURACY_SSE = 0, 1, 2, 3
 
 
 @jit()
@@ -188,7 +188,7 @@ def _pow(x, m):
 
 @jit()
 def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per_vertex, exponent, n_alg,
-                accuracy_mode, original, use_size, importance, focus_strength, motion_strength, frame_time, previous,
+                accuracy_mode, original, error, extent, use_size, importance, focus_strength, motion_strength, frame_time, previous,
                 level_weight, algorithm_weight, out):
     """out[i, k] = Σ_j weight[j] · Benefit_j(i, k) over valid options, 0 elsewhere (``benefit.benefit_matrix``).
 
@@ -197,8 +197,10 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
     moving : (C,) bool — Motion on for camera j (its speed was measured)
     faces, vertices : (v, K); valid : (v, K) bool
     per_vertex, exponent : (R,) F&S Samples (vertices, not faces) and m per algorithm; option k uses k % R
-    accuracy_mode : ACCURACY_OFF, ACCURACY_FS or ACCURACY_ZACH
+    accuracy_mode : ACCURACY_OFF, ACCURACY_FS, ACCURACY_ZACH or ACCURACY_SSE
     original : (v,) Zach's #originalFaces per row (``benefit.original_faces``); empty: each row's most faces
+    error, extent : (v, K) geometric error per option, (v,) box diagonal per row — screen-space error
+        accuracy (``benefit.projected_error``); empty otherwise
     focus_strength, motion_strength : the factors' slopes (used only when their input is given)
     The factors multiply in ``benefit_matrix``'s order, so the sums are the same to the last bit; what
     does not depend on the camera (hysteresis weights, accuracy below the pixel cap) is computed once per row,
@@ -263,6 +265,9 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                 elif accuracy_mode == ACCURACY_ZACH:
                     f = max(np.float64(faces[i, k]), 1.0)
                     x *= max(1.0, s / orig) / max(1.0, s / f)
+                elif accuracy_mode == ACCURACY_SSE:
+                    px = max(np.float64(error[i, k]), 0.0) * (math.sqrt(2.0 * max(s, 0.0)) / max(extent[i], 1e-12))
+                    x *= 1.0 / (1.0 + px)
                 if use_importance:
                     x *= imp
                 if use_focus:
@@ -304,7 +309,9 @@ def compile_all() -> None:
     for f_dtype in (np.int64, np.int32):
         f = np.ones((2, 3), f_dtype)
         for moving in (np.ones(2, bool), np.zeros(2, bool)):
-            benefit_sum(size, offset, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_FS, empty1, True, wh, 0.3,
-                        0.5, 0.05, rows, 0.1, 0.1, out)
-            benefit_sum(size, empty2, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_ZACH, wh, True, empty1,
-                        0.3, 0.5, 0.05, np.zeros(0, np.int64), 0.1, 0.1, out)
+            benefit_sum(size, offset, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_FS, empty1, empty2, empty1,
+                        True, wh, 0.3, 0.5, 0.05, rows, 0.1, 0.1, out)
+            benefit_sum(size, empty2, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_ZACH, wh, empty2, empty1,
+                        True, empty1, 0.3, 0.5, 0.05, np.zeros(0, np.int64), 0.1, 0.1, out)
+            benefit_sum(size, offset, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_SSE, empty1,
+                        np.ones((2, 3)), wh, True, wh, 0.3, 0.5, 0.05, rows, 0.1, 0.1, out)

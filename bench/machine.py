@@ -1,0 +1,100 @@
+"""Telling the method from the machine: cores apart for server and client, and a calibration workload.
+
+On a shared machine the same work takes a different time from one second to the next. The evaluation
+pins the server and the client to different cores (``split_cores``, when there are at least two), and
+beside each run a ``Calibration`` thread times a small fixed workload once a second: a run whose
+calibration is slow ran on a slow machine, whatever its method. The workload is numpy sorting (single
+threaded, and it releases the GIL), so it does not hold up the client's frames.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+
+__all__ = ["split_cores", "calibration_workload", "Calibration"]
+
+#: Values the workload sorts, and how many times.
+_VALUES, _ROUNDS = 100_000, 4
+
+
+def split_cores(server_pid: int) -> dict:
+    """Pin ``server_pid`` (every thread of it) to the first core this process may use, and the calling thread
+    (so the threads it starts later: the client's renderer) to the others.
+
+    Returns {"server": [cores], "client": [cores]}, or {} when fewer than two cores are available or the
+    platform has no ``sched_setaffinity`` (nothing is pinned then).
+    """
+    if not hasattr(os, "sched_setaffinity"):
+        return {}
+    cores = sorted(os.sched_getaffinity(0))
+    if len(cores) < 2:
+        return {}
+    server, client = cores[:1], cores[1:]
+    try:
+        for tid in _threads(server_pid):  # a running server has threads already: each has its own mask
+            os.sched_setaffinity(tid, server)
+        os.sched_setaffinity(0, client)  # this thread; the client's renderer and its threads start after
+    except OSError:
+        return {}
+    return {"server": server, "client": client}
+
+
+def _threads(pid: int) -> list[int]:
+    """The thread ids of process ``pid`` (Linux ``/proc``), or just ``pid`` where they cannot be listed."""
+    try:
+        return sorted(int(t) for t in os.listdir(f"/proc/{pid}/task"))
+    except OSError:
+        return [pid]
+
+
+def calibration_workload(rng_seed: int = 0) -> float:
+    """Seconds one fixed workload takes now (a few ms on an idle core)."""
+    a = np.random.default_rng(rng_seed).standard_normal(_VALUES)
+    t0 = time.perf_counter()
+    for _ in range(_ROUNDS):
+        b = np.sort(a)
+    t1 = time.perf_counter()
+    if not b[0] <= b[-1]:  # keeps the work from being optimised away, and says if it went wrong
+        raise ArithmeticError("calibration workload did not sort")
+    return t1 - t0
+
+
+class Calibration:
+    """A daemon thread timing ``calibration_workload`` every ``period`` s while a run lasts (a context manager).
+
+    ``samples()`` gives {"t": [s since start], "ms": [workload time]}.
+    """
+
+    def __init__(self, period: float = 1.0) -> None:
+        if not period > 0:
+            raise ValueError(f"period must be positive, got {period!r}")
+        self.period = float(period)
+        self._t: list[float] = []
+        self._ms: list[float] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="calibration", daemon=True)
+
+    def _loop(self) -> None:
+        start = time.perf_counter()
+        while True:
+            at = time.perf_counter() - start
+            self._ms.append(1e3 * calibration_workload())
+            self._t.append(at)
+            if self._stop.wait(self.period):
+                return
+
+    def __enter__(self) -> "Calibration":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def samples(self) -> dict:
+        n = min(len(self._t), len(self._ms))
+        return {"t": [float(v) for v in self._t[:n]], "ms": [float(v) for v in self._ms[:n]]}

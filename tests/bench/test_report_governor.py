@@ -1,0 +1,103 @@
+"""The governor's checks and the repeats in the report: median runs, spread, and each check at its limit."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from bench.report.checks import checks, quality_points
+from bench.report.figures import write_traces
+from bench.report.results import repeats_at, run_at
+from bench.report.table import table1
+
+from tests.bench.test_report import synthetic_results
+
+
+def _with_governor(results: dict, scale: float = 1.0, flip: float = 0.03) -> dict:
+    """Add an optimization+gov run at every budget: frames at ``scale`` × target, FLIP ``flip``."""
+    out = copy.deepcopy(results)
+    for run in [r for r in results["runs"] if r["method"] == "optimization"]:
+        g = copy.deepcopy(run)
+        b = float(g["target_ms"])
+        n = len(g["frames"]["t"])
+        ms = np.full(n, scale * b)
+        g["frames"]["time_ms"] = ms.tolist()
+        g["governor"] = True
+        x = ms[np.asarray(g["frames"]["t"]) >= results["warmup_s"]]
+        g["summary"].update(frame_mean_ms=float(x.mean()), frame_std_ms=0.0, frame_max_ms=float(x.max()),
+                            frame_p99_ms=float(np.percentile(x, 99)), over_pct=float(100 * np.mean(x > 1.1 * b)),
+                            flip_mean=flip)
+        out["runs"].append(g)
+    return out
+
+
+def _by_name(res: dict) -> dict:
+    return {c["name"]: c for c in checks(res)}
+
+
+def test_governor_checks_pass_a_governor_that_holds_the_target():
+    res = _with_governor(synthetic_results(), scale=0.95, flip=0.03)
+    c = _by_name(res)
+    for name in ("governor_mean_bound", "governor_p99", "governor_over", "governor_flip_ratio"):
+        assert c[name]["passed"] is True, c[name]["line"]
+    assert c["governor_mean_bound"]["value"] == pytest.approx(0.95)
+    base = run_at(res, "optimization", 50.0)["summary"]["flip_mean"]
+    assert c["governor_flip_ratio"]["value"] == pytest.approx(0.03 / base)
+    # the bound std checks are Optimization with the governor's (a steady time: std 0)
+    assert c["opt_std_bound_vs_static"]["passed"] is True and "optimization+gov" in c["opt_std_bound_vs_static"]["line"]
+
+
+def test_governor_checks_fail_where_it_misses_and_say_so():
+    c = _by_name(_with_governor(synthetic_results(), scale=0.6, flip=0.049))
+    assert c["governor_mean_bound"]["passed"] is False and "misses" in c["governor_mean_bound"]["line"]
+    assert c["governor_flip_ratio"]["passed"] is False
+    c = _by_name(_with_governor(synthetic_results(), scale=1.2))
+    assert c["governor_p99"]["passed"] is False and c["governor_over"]["passed"] is False
+    assert c["governor_over"]["value"] == pytest.approx(1.0)
+
+
+def test_governor_checks_skip_without_a_governor_run():
+    c = _by_name(synthetic_results())
+    assert all(c[n]["passed"] is None for n in ("governor_mean_bound", "governor_p99", "governor_over",
+                                                  "governor_flip_ratio"))
+    assert "optimization std" in c["opt_std_bound_vs_static"]["line"]
+
+
+def test_table_shows_the_median_repeat_with_the_spread_and_the_governor_row(tmp_path):
+    res = _with_governor(synthetic_results())
+    runs = []
+    for k, shift in enumerate((3.0, -2.0, 0.0)):  # three repeats of every run, interleaved
+        for r in res["runs"]:
+            r = copy.deepcopy(r)
+            r["repeat"] = k
+            r["summary"]["frame_mean_ms"] += shift
+            runs.append(r)
+    res["runs"] = runs
+    assert len(repeats_at(res, "optimization", 50.0)) == 3
+    median = run_at(res, "optimization", 50.0)
+    assert median["repeat"] == 2  # the middle mean of (+3, −2, 0)
+    rows = {r["method"]: r for r in table1(res)}
+    assert list(rows).index("optimization+gov") == list(rows).index("optimization") + 1
+    assert rows["optimization"]["repeats"] == 3 and rows["optimization"]["frame_mean_spread_ms"] == pytest.approx(5.0)
+    gov = run_at(res, "optimization", 50.0, governor=True)
+    assert gov["governor"] and rows["optimization+gov"]["frame_mean_ms"] == gov["summary"]["frame_mean_ms"]
+    labels = {p["method"] for p in quality_points(res)}
+    assert {"optimization", "optimization+gov"} <= labels
+    # one point per (method, budget), from the median repeat
+    opt = [p for p in quality_points(res) if p["method"] == "optimization"]
+    assert len(opt) == 3
+
+
+def test_traces_draw_the_calibration_under_the_runs(tmp_path):
+    res = _with_governor(synthetic_results(methods=["none", "static", "optimization"]))
+    for r in res["runs"]:
+        r["calibration"] = {"t": [0.0, 1.0, 2.0, 3.0], "ms": [2.0, 2.1, 3.5, 2.2]}
+    path = write_traces(res, tmp_path / "traces.png")
+    assert path is not None and path.stat().st_size > 0
+    from PIL import Image
+
+    plain = write_traces(synthetic_results(methods=["none", "static", "optimization"]), tmp_path / "plain.png")
+    # one panel more (optimization+gov) and the calibration panel below: a taller figure
+    assert Image.open(path).size[1] > Image.open(plain).size[1]
