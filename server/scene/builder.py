@@ -82,6 +82,9 @@ class BuildOptions:
     bounds: Bounds = Bounds()
 
 
+#: Full-detail vertices per object from which HLOD proxies' errors are measured.
+HLOD_POINTS = 48
+
 _BUILDING_CLASSES = ("building", "buildingpart", "building_part", "house")
 
 
@@ -112,7 +115,10 @@ def _chain_job(args: tuple) -> tuple:
     # morph[k] maps level k's vertices onto level k-1's; the coarsest level (and morph="none") has none.
     lo, hi, blobs, morphs = encode_levels(chain.levels, chain.morph, reorder=False)
     coarsest = chain.levels[0]
-    return lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest, fidelity, regenerated, dropped
+    full = chain.levels[-1][0]
+    sample = full[np.linspace(0, full.shape[0] - 1, min(full.shape[0], HLOD_POINTS)).astype(np.int64)]
+    return (lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest, fidelity, regenerated, dropped,
+            sample)
 
 
 def scene_origin(source: SourceScene) -> np.ndarray:
@@ -220,8 +226,10 @@ def build_store(
         hi = np.array([chains[i][1] for i in members])
         proxies = [Mesh(*chains[i][5]) for i in members]
         coarse_error = np.array([chains[i][2][0] for i in members])
+        points = [chains[i][9] for i in members] if options.shape_guard else None
         tree = build_hlod(lo, hi, proxies, object_error=coarse_error, workers=workers,
-                          progress=lambda d, t: tick("hlod", d, t))
+                          progress=lambda d, t: tick("hlod", d, t), points=points,
+                          bounds=options.bounds if options.shape_guard else None)
     timings["hlod"] = time.perf_counter() - t0
 
     # 3. terrain quadtrees
@@ -288,14 +296,16 @@ def build_store(
                 p, f = tree.proxies[j].positions, tree.proxies[j].faces
                 blob = encode_geometry(p, f, p.min(axis=0), p.max(axis=0))
                 parent = -1 if tree.parent[j] < 0 else node_id[tree.parent[j]]
+                q = tree.fidelity[j] if tree.fidelity else None
                 node_id.append(writer.add_encoded(f"hlod_{j}", "hlod", node_lo[j], node_hi[j],
-                                                  [float(tree.error[j])], [blob], kind=HLOD, parent=parent))
+                                                  [float(tree.error[j])], [blob], kind=HLOD, parent=parent,
+                                                  fidelity=None if q is None else [q.as_tuple()]))
                 counts["hlod"] += 1
                 wrote()
         parent_of = np.full(len(objects), -1)
         if tree is not None:
             parent_of[members] = np.asarray(node_id)[np.asarray(tree.object_parent)]
-        for i, (obj, (lo, hi, errors, blobs, morphs, _, fid, _, _)) in enumerate(zip(objects, chains)):
+        for i, (obj, (lo, hi, errors, blobs, morphs, _, fid, _, _, _)) in enumerate(zip(objects, chains)):
             writer.add_encoded(obj.name, obj.cls, lo, hi, errors, blobs, kind=MESH, parent=int(parent_of[i]),
                                morphs=morphs, fidelity=fid)
             counts["mesh"] += 1
@@ -361,8 +371,8 @@ def _guard_summary(chains: list[tuple], tree) -> dict:
     out = {"measured": len(measured), "regenerated": int(sum(c[7] for c in chains)),
            "dropped": int(sum(c[8] for c in chains)),
            "methods": {m: sum(q[0] == m for q in measured) for m in sorted({q[0] for q in measured})}}
-    if tree is not None and getattr(tree, "fidelity", None) is not None:
-        out["hlod_measured"] = len(tree.fidelity)
+    if tree is not None and tree.fidelity:
+        out["hlod_measured"] = sum(q is not None for q in tree.fidelity)
         out["hlod_regenerated"] = int(getattr(tree, "regenerated", 0))
         out["hlod_dropped"] = int(getattr(tree, "dropped", 0))
     return out
