@@ -164,6 +164,12 @@ def _subtree_boxes(parent: Sequence[int], lo: Sequence[np.ndarray], hi: Sequence
     return lo, hi
 
 
+def _is_ground(cls: str) -> bool:
+    """Ground sheets (a TIN, ground tiles) keep plain border-pinned decimation: seen edge-on their
+    silhouettes are a few pixels thick, so the silhouette measure says nothing about them."""
+    return cls.lower() in ("terrain", "ground", "tin", "reliefFeature".lower())
+
+
 def _is_building(cls: str) -> bool:
     return cls.lower() in _BUILDING_CLASSES
 
@@ -197,7 +203,7 @@ def build_store(
     t0 = time.perf_counter()
     objects = [o for o in source.objects if o.levels and all(m.n_faces for m in o.levels)]
     jobs = [([(m.positions - origin, m.faces) for m in o.levels], options.morph, options.min_saving,
-             _is_building(o.cls), options.shape_guard, options.bounds)
+             _is_building(o.cls), options.shape_guard and not _is_ground(o.cls), options.bounds)
             for o in objects]
     chains: list[tuple] = []
     tick("chains", 0, len(jobs))
