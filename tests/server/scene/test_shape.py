@@ -56,7 +56,9 @@ def _check_store(path, bounds: Bounds = Bounds()) -> dict:
         idx = store.index
         fid = store.fidelity()
         assert fid is not None
-        meshes = np.flatnonzero(idx.object_kind == MESH)
+        # every mesh but ground sheets is measured (those keep plain decimation)
+        ground = [i for i, c in enumerate(idx.class_names) if c in ("terrain", "ground")]
+        meshes = np.flatnonzero((idx.object_kind == MESH) & ~np.isin(idx.object_class, ground))
         full = idx.rep_first[meshes] + idx.rep_count[meshes] - 1
         coarse = np.concatenate([np.arange(a, b) for a, b in zip(idx.rep_first[meshes], full)] + [np.zeros(0, int)])
         rows = np.searchsorted(fid["rep"], coarse)
