@@ -35,6 +35,8 @@ import numpy as np
 from proto.geometry import encode_geometry
 
 from .index import HLOD, MESH, TERRAIN, TREES
+from .fidelity import Bounds
+from .ladder import shaped_chain, shaped_source_chain
 from .lod import build_chain, chain_from_levels
 from .source import Mesh, SourceScene
 from .store import SceneStore
@@ -61,6 +63,10 @@ class BuildOptions:
     points_per_model: splats per tree model at full resolution
     max_group       : trees per group (ZMK: 64)
     workers         : processes for the chain stage (default: one per CPU, at most 8)
+    shape_guard     : measure every coarse level (``server.scene.fidelity``) and keep only those
+                      within ``bounds``, regenerating failed ones by the shape ladder
+                      (``server.scene.ladder``); False: plain quadric chains, unmeasured
+    bounds          : silhouette IoU / area ratio / FLIP a kept level must reach
     """
 
     hlod: bool | str = "auto"
@@ -72,15 +78,30 @@ class BuildOptions:
     points_per_model: int = 4096
     max_group: int = 64
     workers: int | None = None
+    shape_guard: bool = True
+    bounds: Bounds = Bounds()
 
+
+#: Full-detail vertices per object from which HLOD proxies' errors are measured.
+HLOD_POINTS = 48
 
 _BUILDING_CLASSES = ("building", "buildingpart", "building_part", "house")
 
 
 def _chain_job(args: tuple) -> tuple:
-    """One object's rows: (lo, hi, errors, geometry blobs, morph blobs, coarsest mesh)."""
-    levels, morph, min_saving = args
-    if len(levels) == 1:
+    """One object's rows: (lo, hi, errors, blobs, morph blobs, coarsest mesh, fidelity, regenerated, dropped)."""
+    levels, morph, min_saving, building, guard, bounds = args
+    fidelity = None
+    regenerated = dropped = 0
+    if guard:
+        if len(levels) == 1:
+            shaped = shaped_chain(levels[0][0], levels[0][1], building=building, bounds=bounds,
+                                  min_saving=min_saving)
+        else:
+            shaped = shaped_source_chain(levels, building=building, bounds=bounds)
+        chain, regenerated, dropped = shaped.chain, shaped.regenerated, shaped.dropped
+        fidelity = [f.as_tuple() for f in shaped.fidelity]
+    elif len(levels) == 1:
         chain = build_chain(levels[0][0], levels[0][1], min_saving=min_saving, morph=morph)
     else:
         # The source's own LoDs are real data and stay, except a dominated one: a coarser LoD
@@ -94,7 +115,10 @@ def _chain_job(args: tuple) -> tuple:
     # morph[k] maps level k's vertices onto level k-1's; the coarsest level (and morph="none") has none.
     lo, hi, blobs, morphs = encode_levels(chain.levels, chain.morph, reorder=False)
     coarsest = chain.levels[0]
-    return lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest
+    full = chain.levels[-1][0]
+    sample = full[np.linspace(0, full.shape[0] - 1, min(full.shape[0], HLOD_POINTS)).astype(np.int64)]
+    return (lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest, fidelity, regenerated, dropped,
+            sample)
 
 
 def scene_origin(source: SourceScene) -> np.ndarray:
@@ -140,6 +164,12 @@ def _subtree_boxes(parent: Sequence[int], lo: Sequence[np.ndarray], hi: Sequence
     return lo, hi
 
 
+def _is_ground(cls: str) -> bool:
+    """Ground sheets (a TIN, ground tiles) keep plain border-pinned decimation: seen edge-on their
+    silhouettes are a few pixels thick, so the silhouette measure says nothing about them."""
+    return cls.lower() in ("terrain", "ground", "tin", "reliefFeature".lower())
+
+
 def _is_building(cls: str) -> bool:
     return cls.lower() in _BUILDING_CLASSES
 
@@ -172,7 +202,8 @@ def build_store(
     # 1. chains
     t0 = time.perf_counter()
     objects = [o for o in source.objects if o.levels and all(m.n_faces for m in o.levels)]
-    jobs = [([(m.positions - origin, m.faces) for m in o.levels], options.morph, options.min_saving)
+    jobs = [([(m.positions - origin, m.faces) for m in o.levels], options.morph, options.min_saving,
+             _is_building(o.cls), options.shape_guard and not _is_ground(o.cls), options.bounds)
             for o in objects]
     chains: list[tuple] = []
     tick("chains", 0, len(jobs))
@@ -201,8 +232,10 @@ def build_store(
         hi = np.array([chains[i][1] for i in members])
         proxies = [Mesh(*chains[i][5]) for i in members]
         coarse_error = np.array([chains[i][2][0] for i in members])
+        points = [chains[i][9] for i in members] if options.shape_guard else None
         tree = build_hlod(lo, hi, proxies, object_error=coarse_error, workers=workers,
-                          progress=lambda d, t: tick("hlod", d, t))
+                          progress=lambda d, t: tick("hlod", d, t), points=points,
+                          bounds=options.bounds if options.shape_guard else None)
     timings["hlod"] = time.perf_counter() - t0
 
     # 3. terrain quadtrees
@@ -269,16 +302,18 @@ def build_store(
                 p, f = tree.proxies[j].positions, tree.proxies[j].faces
                 blob = encode_geometry(p, f, p.min(axis=0), p.max(axis=0))
                 parent = -1 if tree.parent[j] < 0 else node_id[tree.parent[j]]
+                q = tree.fidelity[j] if tree.fidelity else None
                 node_id.append(writer.add_encoded(f"hlod_{j}", "hlod", node_lo[j], node_hi[j],
-                                                  [float(tree.error[j])], [blob], kind=HLOD, parent=parent))
+                                                  [float(tree.error[j])], [blob], kind=HLOD, parent=parent,
+                                                  fidelity=None if q is None else [q.as_tuple()]))
                 counts["hlod"] += 1
                 wrote()
         parent_of = np.full(len(objects), -1)
         if tree is not None:
             parent_of[members] = np.asarray(node_id)[np.asarray(tree.object_parent)]
-        for i, (obj, (lo, hi, errors, blobs, morphs, _)) in enumerate(zip(objects, chains)):
+        for i, (obj, (lo, hi, errors, blobs, morphs, _, fid, _, _, _)) in enumerate(zip(objects, chains)):
             writer.add_encoded(obj.name, obj.cls, lo, hi, errors, blobs, kind=MESH, parent=int(parent_of[i]),
-                               morphs=morphs)
+                               morphs=morphs, fidelity=fid)
             counts["mesh"] += 1
             wrote()
         for tname, t in terrains:
@@ -332,5 +367,19 @@ def build_store(
         "bytes": Path(path).stat().st_size,
         "seconds": round(time.perf_counter() - started, 2),
         "stages": {k: round(v, 2) for k, v in timings.items()},
+        "levels": _guard_summary(chains, tree),
     }
+
+
+def _guard_summary(chains: list[tuple], tree) -> dict:
+    """How many coarse levels the shape guard measured, regenerated and dropped."""
+    measured = [q for c in chains if c[6] is not None for q in c[6][:-1]]
+    out = {"measured": len(measured), "regenerated": int(sum(c[7] for c in chains)),
+           "dropped": int(sum(c[8] for c in chains)),
+           "methods": {m: sum(q[0] == m for q in measured) for m in sorted({q[0] for q in measured})}}
+    if tree is not None and tree.fidelity:
+        out["hlod_measured"] = sum(q is not None for q in tree.fidelity)
+        out["hlod_regenerated"] = int(getattr(tree, "regenerated", 0))
+        out["hlod_dropped"] = int(getattr(tree, "dropped", 0))
+    return out
 

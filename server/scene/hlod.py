@@ -28,6 +28,9 @@ from dataclasses import dataclass, field
 import fast_simplification
 import numpy as np
 
+from server.scene import blocks
+from server.scene.fidelity import Bounds, measure, reference
+from server.scene.footprints import footprint_proxy
 from server.scene.lod import clean_mesh, geometric_error
 from server.scene.source import Mesh
 from server.scene.workers import process_pool
@@ -48,6 +51,8 @@ class HLODTree:
     error         : (N,) float64 — geometric error of the proxy (metres), non-decreasing toward the root
     proxies       : N meshes, the merged simplified stand-ins of the subtrees
     object_parent : (n,) int32 — the (lowest) inner node each object hangs under
+    fidelity      : per node, the proxy's measures (``Fidelity``) or None when unmeasured
+    regenerated, dropped : proxies rebuilt by the next method / left below the bounds
     """
 
     parent: np.ndarray
@@ -57,6 +62,9 @@ class HLODTree:
     error: np.ndarray
     proxies: list[Mesh]
     object_parent: np.ndarray
+    fidelity: list = field(default_factory=list)
+    regenerated: int = 0
+    dropped: int = 0
     _child_start: np.ndarray = field(init=False, repr=False)
     _object_order: np.ndarray = field(init=False, repr=False)
     _object_start: np.ndarray = field(init=False, repr=False)
@@ -211,6 +219,8 @@ def build_hlod(
     object_error: np.ndarray | None = None,
     progress: Callable[[int, int], None] | None = None,
     workers: int = 1,
+    points: Sequence[np.ndarray] | None = None,
+    bounds: Bounds | None = None,
 ) -> HLODTree:
     """Cluster n objects into an HLOD tree and build every inner node's merged proxy.
 
@@ -226,9 +236,14 @@ def build_hlod(
     progress        : called as progress(done, total) after each inner node
     workers         : processes building proxies (1: in this process); the result
                       does not depend on it
+    points          : n arrays of each object's full-detail vertices (a subsample); a node's
+                      error is then measured from its subtree's points to its proxy
+    bounds          : build proxies as 2.5-D footprint sets guarded by these bounds
+                      (``_node_proxy``); None: merge and decimate, unmeasured
 
-    A node's error is the estimated Hausdorff distance from the merged children's
-    vertices to its proxy plus the largest child error, so it grows toward the root.
+    Without ``points``, a node's error is the estimated Hausdorff distance from the merged
+    children's vertices to its proxy plus the largest child error; with them it is measured
+    from the subtree's full-detail points, and made no less than its children's.
     """
     lo = np.asarray(lo, np.float64).reshape(-1, 3)
     hi = np.asarray(hi, np.float64).reshape(-1, 3)
@@ -242,6 +257,7 @@ def build_hlod(
     n_nodes = parent.shape[0]
     tree = HLODTree(parent, depth, np.empty((n_nodes, 3)), np.empty((n_nodes, 3)), np.zeros(n_nodes),
                     [None] * n_nodes, object_parent)  # type: ignore[list-item]
+    tree.fidelity = [None] * n_nodes
     stalled = np.zeros(n_nodes, bool)  # the node's proxy needed vertex clustering
     pool = process_pool(workers) if workers > 1 else None
     done = 0
@@ -249,17 +265,26 @@ def build_hlod(
         # Bottom-up one depth at a time: the nodes of a depth are independent.
         for d in range(int(depth.max()), -1, -1):
             nodes = np.flatnonzero(depth == d)[::-1]
-            tasks, flags = [], []
+            tasks, flags, pts, masks = [], [], [], []
             for node in nodes:
+                pts.append(None if points is None else np.concatenate(
+                    [np.zeros((0, 3))] + [points[o] for o in tree.leaves_under(node)]))
                 flags.append(bool(stalled[tree.children(node)].any()))
-                parts = [tree.proxies[k] for k in tree.children(node)] + [proxies[o] for o in tree.objects(node)]
-                tasks.append([(m.positions, m.faces) for m in parts if m.n_faces > 0])
+                parts = [(tree.proxies[k], False) for k in tree.children(node)] + [
+                    (proxies[o], True) for o in tree.objects(node)]
+                tasks.append([(m.positions, m.faces) for m, _ in parts if m.n_faces > 0])
+                masks.append([is_obj for m, is_obj in parts if m.n_faces > 0])
             if pool is None:
-                results = map(_node_proxy, tasks, [max_proxy_faces] * len(tasks), flags)
+                results = map(_node_proxy, tasks, [max_proxy_faces] * len(tasks), flags, pts,
+                              [bounds] * len(tasks), masks)
             else:
                 chunk = max(1, min(32, len(tasks) // (4 * workers)))
-                results = pool.map(_node_proxy, tasks, [max_proxy_faces] * len(tasks), flags, chunksize=chunk)
-            for node, (p, f, err, stalled[node]) in zip(nodes, results):
+                results = pool.map(_node_proxy, tasks, [max_proxy_faces] * len(tasks), flags, pts,
+                                   [bounds] * len(tasks), masks, chunksize=chunk)
+            for node, (p, f, err, stalled[node], fid, regen, drop) in zip(nodes, results):
+                tree.fidelity[node] = fid
+                tree.regenerated += regen
+                tree.dropped += drop
                 kids, objs = tree.children(node), tree.objects(node)
                 box_lo = np.concatenate([tree.lo[kids], lo[objs], p[:, :3]]).min(axis=0)
                 box_hi = np.concatenate([tree.hi[kids], hi[objs], p[:, :3]]).max(axis=0)
@@ -268,7 +293,7 @@ def build_hlod(
                 child_err = max(tree.error[kids].max(initial=0.0), obj_err[objs].max(initial=0.0))
                 tree.proxies[node] = Mesh(p, f)
                 tree.lo[node], tree.hi[node] = box_lo, box_hi
-                tree.error[node] = err + child_err
+                tree.error[node] = max(err, child_err) if points is not None else err + child_err
                 done += 1
                 if progress is not None:
                     progress(done, n_nodes)
@@ -278,13 +303,56 @@ def build_hlod(
     return tree
 
 
-def _node_proxy(parts: list[tuple[np.ndarray, np.ndarray]], max_faces: int,
-                stalled: bool) -> tuple[np.ndarray, np.ndarray, float, bool]:
-    """One node's proxy from its children's meshes: positions, faces, its own error (NaN when empty), stalled."""
+def _node_proxy(parts: list[tuple[np.ndarray, np.ndarray]], max_faces: int, stalled: bool,
+                points: np.ndarray | None = None, bounds: Bounds | None = None,
+                objects_mask: Sequence[bool] | None = None) -> tuple:
+    """One node's proxy from its children's meshes.
+
+    Returns positions, faces, its own error (NaN when empty), stalled, and its measures
+    (``Fidelity`` against the merged children, or None), regenerated, dropped.
+    With ``bounds`` the candidates, in ladder order, are the parts' LoD1 boxes merged (objects'
+    parts; ``objects_mask`` tells them from child proxies), a 2.5-D footprint set
+    (``footprints``) and merge-and-decimate; the first within the bounds and the face limit is
+    kept (a later one: regenerated); when none passes the best stays and is counted (dropped).
+    The error is measured from ``points`` (the subtree's full-detail vertices) when given.
+    """
     if not parts:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), 0.0, False
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), 0.0, False, None, 0, 0
+    objects_mask = [True] * len(parts) if objects_mask is None else list(objects_mask)
     pos, fac = _merge(parts)
-    p, f, stalled = _simplify(pos, fac, min(fac.shape[0] // 2, max_faces), stalled)
-    if f.shape[0] == 0:
-        return p, f, float("nan"), stalled
-    return p, f, geometric_error(pos, p, f, samples=ERROR_SAMPLES), stalled
+    limit = min(fac.shape[0] // 2, max_faces)
+    target = pos if points is None or len(points) == 0 else points
+    if bounds is None:
+        p, f, stalled = _simplify(pos, fac, limit, stalled)
+        if f.shape[0] == 0:
+            return p, f, float("nan"), stalled, None, 0, 0
+        return p, f, geometric_error(target, p, f, samples=ERROR_SAMPLES), stalled, None, 0, 0
+    ref = reference(pos, fac)
+    regenerated = dropped = 0
+    best = None
+    for k, method in enumerate(("blocks", "footprint", "decimate")):
+        if method == "blocks":  # every part's LoD1 box, merged (a part already a proxy stays)
+            made = [blocks.oriented_box(p_, f_) if n_obj else None for (p_, f_), n_obj in zip(parts, objects_mask)]
+            p, f = _merge([m if m is not None else part for m, part in zip(made, parts)])
+        elif method == "footprint":
+            p, f = footprint_proxy(pos, fac, limit)
+        else:
+            p, f, stalled = _simplify(pos, fac, limit, stalled)
+        if f.shape[0] == 0 or f.shape[0] > limit:
+            continue
+        err = geometric_error(target, p, f, samples=ERROR_SAMPLES)
+        fid = measure(ref, p, f, err, method, with_flip=False)
+        ok = bounds.passes(fid, ref.closed)
+        if ok:
+            fid = measure(ref, p, f, err, method)
+            ok = bounds.passes(fid, ref.closed)
+        if best is None or (ok, fid.iou) > (best[0], best[4].iou):
+            best = (ok, p, f, err, fid)
+        if ok:
+            regenerated = int(k > 0)
+            break
+    if best is None:
+        return pos[:0], fac[:0], float("nan"), stalled, None, 0, 0
+    ok, p, f, err, fid = best
+    dropped = int(not ok)  # below the bounds: the best candidate stays, counted, with its measured error
+    return p, f, err, stalled, fid, regenerated, dropped

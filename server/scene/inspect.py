@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .fidelity import Bounds
 from .index import KINDS, TREES
 from .store import SceneStore
 
@@ -24,6 +25,8 @@ def inspect_store(path: str | os.PathLike[str]) -> dict:
     with SceneStore.open(path) as store:
         load = time.perf_counter() - started
         idx = store.index
+        fid = store.fidelity()
+        names = store.object_names() if fid is not None else []
     kinds = {}
     for k, kind in enumerate(KINDS):
         objs = np.nonzero(idx.object_kind == k)[0]
@@ -56,6 +59,8 @@ def inspect_store(path: str | os.PathLike[str]) -> dict:
         if k != TREES:
             full = idx.rep_first[objs] + idx.rep_count[objs] - 1
             entry["triangles_full_detail"] = int(idx.rep_faces[full].sum())
+        if fid is not None:
+            entry["fidelity"] = _fidelity(idx, fid, reps, level, by_depth, names)
         kinds[kind] = entry
     classes = np.bincount(idx.object_class, minlength=len(idx.class_names))
     full = idx.rep_first + idx.rep_count - 1
@@ -81,6 +86,45 @@ def inspect_store(path: str | os.PathLike[str]) -> dict:
         "tour_seconds": float(idx.tour[-1]["t"]) if idx.tour else 0.0,
         "viewpoints": idx.meta.get("viewpoints") or {},
     }
+
+
+def _quantiles(x: np.ndarray) -> dict:
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return {}
+    q = np.quantile(x, [0.0, 0.1, 0.5, 1.0])
+    return {"min": round(float(q[0]), 4), "p10": round(float(q[1]), 4), "median": round(float(q[2]), 4),
+            "max": round(float(q[3]), 4)}
+
+
+def _fidelity(idx, fid: dict, reps: np.ndarray, level: np.ndarray, by_depth: bool, names: list[str],
+              worst: int = 5) -> dict:
+    """Measured shape of the coarse representations of one kind: per level, and the worst by name."""
+    bounds = Bounds()
+    pos = np.searchsorted(fid["rep"], reps)
+    has = (pos < fid["rep"].size) & (fid["rep"][np.minimum(pos, fid["rep"].size - 1)] == reps)
+    full = idx.rep_first[idx.rep_object[reps]] + idx.rep_count[idx.rep_object[reps]] - 1
+    coarse = has & ((reps != full) | by_depth)
+    rows = pos[coarse]
+    lv = level[coarse]
+    iou, area, flip = fid["iou"][rows], fid["area_ratio"][rows], fid["flip"][rows]
+    area_score = np.minimum(area, 1.0 / np.maximum(area, 1e-12))
+    below = (iou < bounds.iou) | (area_score < bounds.area) | (flip > bounds.flip)
+    per = []
+    for v in np.unique(lv):
+        s = lv == v
+        methods, counts = np.unique(fid["method"][rows][s].astype(str), return_counts=True)
+        per.append({"depth" if by_depth else "level": int(v), "measured": int(s.sum()),
+                    "below_bounds": int(below[s].sum()), "iou": _quantiles(iou[s]),
+                    "area_ratio": _quantiles(area[s]), "flip": _quantiles(flip[s]),
+                    "methods": {str(m): int(c) for m, c in zip(methods, counts)}})
+    order = np.argsort(iou, kind="stable")[:worst]
+    obj = idx.rep_object[reps][coarse]
+    return {"measured": int(coarse.sum()), "below_bounds": int(below.sum()), "levels": per,
+            "worst": [{"name": names[int(obj[i])], "depth" if by_depth else "level": int(lv[i]),
+                       "iou": round(float(iou[i]), 4), "area_ratio": round(float(area[i]), 4),
+                       "flip": None if not np.isfinite(flip[i]) else round(float(flip[i]), 4),
+                       "method": str(fid["method"][rows][i])} for i in order]}
 
 
 def _n(x: float) -> str:
@@ -110,6 +154,17 @@ def format_report(r: dict) -> list[str]:
             row = f"depth {lv['depth']}" if "depth" in lv else f"level {lv['level']}"
             lines.append(f"    {row}: {lv['representations']:6d} reps  {_n(size):>8} {what}  "
                          f"{_n(lv['vertices']):>8} vertices  {_n(lv['bytes']):>8}B  max error {lv['max_error']:.3g}")
+        f = e.get("fidelity")
+        if f:
+            lines.append(f"    shape: {f['measured']} coarse representations measured, {f['below_bounds']} below bounds")
+            for lv in f["levels"]:
+                row = f"depth {lv['depth']}" if "depth" in lv else f"level {lv['level']}"
+                q = lambda d: f"{d.get('min', float('nan')):.2f}/{d.get('p10', float('nan')):.2f}/{d.get('median', float('nan')):.2f}"  # noqa: E731
+                lines.append(f"      {row}: iou min/p10/med {q(lv['iou'])}  area {q(lv['area_ratio'])}  "
+                             f"flip med {lv['flip'].get('median', float('nan')):.3f}  "
+                             + ", ".join(f"{m} {c}" for m, c in lv["methods"].items()))
+            lines.append("      worst: " + "; ".join(
+                f"{w['name']} ({w['method']}) iou {w['iou']:.2f} area {w['area_ratio']:.2f}" for w in f["worst"]))
     if r["tree_models"]:
         lines.append(f"  tree models: {r['tree_models']}, tree instances: {r['tree_instances']}")
     return lines

@@ -44,7 +44,7 @@ import numpy as np
 
 from .index import KINDS, SceneIndex, hierarchy
 
-__all__ = ["SCHEMA_VERSION", "APPLICATION_ID", "TABLES", "META_KEYS", "StoreError", "SceneStore"]
+__all__ = ["SCHEMA_VERSION", "APPLICATION_ID", "TABLES", "OPTIONAL_TABLES", "META_KEYS", "StoreError", "SceneStore"]
 
 SCHEMA_VERSION = 2
 #: ``PRAGMA application_id`` of a walkstream store ("WkSt"), so foreign SQLite files are told apart.
@@ -69,6 +69,14 @@ TABLES = {
     ),
 }
 #: Meta keys every store has (``SceneWriter.commit`` writes them, ``SceneStore.open`` requires them).
+#: Optional tables: a store without them still opens (older builds); ``fidelity`` holds each
+#: measured representation's method, area ratio, least silhouette IoU and FLIP (``server.scene.fidelity``).
+OPTIONAL_TABLES = {
+    "fidelity": (
+        "CREATE TABLE fidelity (rep INTEGER PRIMARY KEY, method TEXT NOT NULL, area_ratio REAL NOT NULL, "
+        "iou REAL NOT NULL, flip REAL)"
+    ),
+}
 META_KEYS = ("schema_version", "name", "bounds", "tour", "start", "class_names")
 #: Blobs fetched per SELECT in ``geometries`` (SQLite's default variable limit is 999+).
 _CHUNK = 500
@@ -154,6 +162,20 @@ class SceneStore:
         if missing:
             raise StoreError(f"{self.path}: corrupt: {what} {missing[0]} has no {column}")
         return [found[r] for r in ids]
+
+    def fidelity(self) -> dict[str, np.ndarray] | None:
+        """Measured representations: rep, method, area_ratio, iou, flip (NaN: not rendered); None if unmeasured."""
+        conn = self._connection()
+        if "fidelity" not in _table_names(conn):
+            return None
+        rows = conn.execute("SELECT rep, method, area_ratio, iou, flip FROM fidelity ORDER BY rep").fetchall()
+        return {
+            "rep": np.array([r[0] for r in rows], np.int64),
+            "method": np.array([r[1] for r in rows], object),
+            "area_ratio": np.array([r[2] for r in rows], np.float64),
+            "iou": np.array([r[3] for r in rows], np.float64),
+            "flip": np.array([np.nan if r[4] is None else r[4] for r in rows], np.float64),
+        }
 
     def object_names(self) -> list[str]:
         """Names of objects 0..n-1 (for people and logs; kept out of the index)."""

@@ -28,7 +28,7 @@ from proto.messages import Pose, TourKey
 from proto.morph import encode_morph
 
 from .index import KINDS, MESH
-from .store import APPLICATION_ID, META_KEYS, SCHEMA_VERSION, TABLES, StoreError
+from .store import APPLICATION_ID, META_KEYS, OPTIONAL_TABLES, SCHEMA_VERSION, TABLES, StoreError
 
 __all__ = ["SceneWriter", "encode_levels", "object_box"]
 
@@ -92,7 +92,7 @@ class SceneWriter:
             self._conn.execute("PRAGMA synchronous = OFF")
             self._conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
             self._conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
-            for ddl in TABLES.values():
+            for ddl in (*TABLES.values(), *OPTIONAL_TABLES.values()):
                 self._conn.execute(ddl)
         except sqlite3.Error as exc:
             self.abort()
@@ -130,7 +130,8 @@ class SceneWriter:
     def add_encoded(self, name: str, cls: str, lo: np.ndarray, hi: np.ndarray, errors: Sequence[float],
                     blobs: Sequence[bytes], *, kind: int = MESH, parent: int = -1,
                     morphs: Sequence[bytes | None] | None = None,
-                    counts: Sequence[tuple[int, int]] | None = None) -> int:
+                    counts: Sequence[tuple[int, int]] | None = None,
+                    fidelity: Sequence[tuple[str, float, float, float] | None] | None = None) -> int:
         """Add one object whose levels are already encoded, coarsest → finest; returns its id.
 
         For builders that encode in worker processes. Face and vertex counts
@@ -142,6 +143,8 @@ class SceneWriter:
         kind   : one of ``MESH, HLOD, TERRAIN, TREES``
         parent : an object already added (its id), or −1
         morphs : per level, None or an encoded ``proto.morph`` map onto the previous level
+        fidelity : per level, None or (method, area ratio, silhouette IoU, FLIP) as measured
+                 against the finest level (``server.scene.fidelity``)
         """
         self._check_open()
         k = len(blobs)
@@ -177,6 +180,14 @@ class SceneWriter:
                     for i in range(k)
                 ],
             )
+            if fidelity is not None:
+                if len(fidelity) != k:
+                    raise ValueError(f"object {name!r}: {k} levels but {len(fidelity)} fidelity entries")
+                self._conn.executemany(
+                    "INSERT INTO fidelity VALUES (?, ?, ?, ?, ?)",
+                    [(self._n_reps + i, str(q[0]), float(q[1]), float(q[2]),
+                      None if not np.isfinite(q[3]) else float(q[3]))
+                     for i, q in enumerate(fidelity) if q is not None])
         except sqlite3.Error as exc:
             raise StoreError(f"{self.path}: cannot add object {name!r}: {exc}") from None
         self._n_objects += 1

@@ -1,0 +1,120 @@
+"""Coarse levels and HLOD proxies that keep their object's shape: the ladder, the measures, the guard."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from proto.geometry import decode_geometry
+from server.scene.blocks import block_model, oriented_box
+from server.scene.builder import BuildOptions, build_store
+from server.scene.data import data_file
+from server.scene.fidelity import Bounds, _draw, is_closed, measure, reference, surface_area
+from server.scene.generate.megacity import megacity
+from server.scene.importers import load_source
+from server.scene.index import HLOD, MESH
+from server.scene.ladder import shaped_chain
+from server.scene.lod import build_chain
+from server.scene.source import SourceScene
+from server.scene.store import SceneStore
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(2, 40), st.floats(2, 40), st.floats(3, 60), st.floats(0, np.pi))
+def test_block_and_box_of_a_box_are_that_box(w, d, h, turn) -> None:
+    m = trimesh.creation.box((w, d, h))
+    m.apply_transform(trimesh.transformations.rotation_matrix(turn, [0, 0, 1]))
+    m.apply_translation([100.0, -50.0, h / 2])
+    for make in (block_model, oriented_box):
+        p, f = make(m.vertices, m.faces)
+        assert is_closed(f) and f.shape[0] == 12
+        assert surface_area(p, f) == pytest.approx(m.area, rel=1e-3)
+        out = trimesh.Trimesh(p, f, process=False)
+        assert out.volume == pytest.approx(m.volume, rel=1e-3)  # outward faces: positive volume
+
+
+def test_decimation_that_loses_the_walls_is_not_kept() -> None:
+    """A megacity building: quadric decimation's coarsest level loses its walls; the ladder keeps none such."""
+    src, _, _ = megacity(8)
+    m = src.objects[0].levels[0]
+    plain = build_chain(m.positions, m.faces)
+    ref = reference(*plain.levels[-1])
+    worst = measure(ref, *plain.levels[0], plain.errors[0])
+    assert worst.iou < 0.5 and worst.area_ratio < 0.5  # the defect, as the plain chain has it
+    shaped = shaped_chain(m.positions, m.faces, building=True)
+    assert shaped.dropped + shaped.regenerated >= 1
+    assert all(Bounds().passes(q, True) for q in shaped.fidelity)
+    assert shaped.chain.faces[0] < m.n_faces * 0.2
+
+
+def _check_store(path, bounds: Bounds = Bounds()) -> dict:
+    """Every measured coarse mesh level passes the bounds (area for closed full levels); returns the measures."""
+    with SceneStore.open(path) as store:
+        idx = store.index
+        fid = store.fidelity()
+        assert fid is not None
+        # every mesh but ground sheets is measured (those keep plain decimation)
+        ground = [i for i, c in enumerate(idx.class_names) if c in ("terrain", "ground")]
+        meshes = np.flatnonzero((idx.object_kind == MESH) & ~np.isin(idx.object_class, ground))
+        full = idx.rep_first[meshes] + idx.rep_count[meshes] - 1
+        coarse = np.concatenate([np.arange(a, b) for a, b in zip(idx.rep_first[meshes], full)] + [np.zeros(0, int)])
+        rows = np.searchsorted(fid["rep"], coarse)
+        assert (fid["rep"][rows] == coarse).all()
+        assert (fid["iou"][rows] >= bounds.iou).all()
+        assert not (fid["flip"][rows] > bounds.flip).any()
+        closed = np.array([is_closed(decode_geometry(b).indices) for b in store.geometries(full.tolist())], bool)
+        owner = np.repeat(np.arange(meshes.size), idx.rep_count[meshes] - 1)
+        area = fid["area_ratio"][rows]
+        assert (np.minimum(area, 1 / area)[closed[owner]] >= bounds.area).all()
+        hlod = np.flatnonzero(idx.rep_object >= 0)[idx.object_kind[idx.rep_object] == HLOD]
+        return {"coarse": coarse.size, "hlod_measured": int(np.isin(hlod, fid["rep"]).sum()), "hlod": hlod.size}
+
+
+@pytest.mark.parametrize("name", ["interior/AC20-FZK-Haus.city.json", "city/multi_lod.city.json",
+                                  "city/DenHaag_01.city.json"])
+def test_real_buildings_keep_only_levels_within_bounds(tmp_path, name) -> None:
+    source = load_source(data_file(name))
+    if len(source.objects) > 120:  # Den Haag: a block of it keeps the suite fast
+        source = SourceScene(objects=source.objects[:120], crs=source.crs, sources=source.sources)
+    out = tmp_path / "s.db"
+    summary = build_store(out, source, options=BuildOptions(workers=1, hlod_min=16))
+    got = _check_store(out)
+    assert summary["levels"]["measured"] == got["coarse"]
+    assert got["hlod_measured"] == got["hlod"]
+
+
+def test_megacity_block_has_walls_at_street_level(tmp_path) -> None:
+    """Every kept coarse level passes; an along-the-street view of the coarsest cut covers the walls."""
+    src, _, _ = megacity(64)
+    out = tmp_path / "m.db"
+    summary = build_store(out, src, options=BuildOptions(workers=1))
+    _check_store(out)
+    assert summary["levels"]["dropped"] > 0  # the guard removed the wall-less levels decimation made
+    with SceneStore.open(out) as store:
+        idx = store.index
+        meshes = np.flatnonzero((idx.object_kind == MESH) & (idx.object_class == idx.class_names.index("building")))
+        coarse = [decode_geometry(b) for b in store.geometries(idx.rep_first[meshes].tolist())]
+        full = [decode_geometry(b) for b in store.geometries((idx.rep_first[meshes] + idx.rep_count[meshes] - 1).tolist())]
+
+    def view(geoms):
+        """Orthographic view along +y of the street level (0..8 m): per pixel, |n_z| of the nearest face."""
+        pos = np.concatenate([np.asarray(g.positions, np.float64) for g in geoms])
+        off = np.cumsum([0] + [len(g.positions) for g in geoms[:-1]])
+        fac = np.concatenate([np.asarray(g.indices, np.int64).reshape(-1, 3) + o for g, o in zip(geoms, off)])
+        lo = np.array([pos[:, 0].min(), 0.0])
+        ext = np.array([np.ptp(pos[:, 0]), 8.0])
+        res = np.array([512, 64])
+        uv = np.column_stack([(pos[:, 0] - lo[0]) / ext[0] * res[0], (pos[:, 2] - lo[1]) / ext[1] * res[1], -pos[:, 1]])
+        tri = pos[fac]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        nz = np.abs(n[:, 2]) / np.maximum(np.linalg.norm(n, axis=1), 1e-30)
+        image, _ = _draw(uv[fac], nz, int(res[1]), int(res[0]))
+        return image
+
+    detail, cut = view(full), view(coarse)
+    walls = (detail >= 0) & (detail < 0.3)  # faces within ~17° of vertical
+    assert walls.sum() > 1000
+    assert (cut[walls] >= 0).mean() >= 0.9
