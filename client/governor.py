@@ -14,9 +14,9 @@ the units of a state, then takes decrements of lowest value until the prediction
 fits the target, or increments of highest value while it fits (below a slack, so
 noise does not make it chatter; and none while a decrement is still ramping).
 
-A change is never drawn at once: each object's offset from the plan ramps by at
-most one level per ``ramp`` seconds, drawn as the schedule's geomorph between
-adjacent levels, so nothing pops.
+A change is never drawn at once: each object's offset from the plan ramps over
+``ramp`` seconds (a change of two levels as a chain of two adjacent morphs), drawn
+as the schedule's geomorph between adjacent levels, so nothing pops.
 
 Pure numpy, no clocks: the caller passes client times and measured frame times.
 """
@@ -123,6 +123,8 @@ class Governor:
         self.down = self.up = 0  # objects the last ``apply`` drew coarser / finer than the plan
         self.gkey = np.zeros(0, np.int64)  # keys with an offset, sorted
         self.g = np.zeros(0)  # their drawn offsets (continuous levels)
+        self.goal = np.zeros(0)  # the offsets they ramp to
+        self.speed = np.zeros(0)  # levels per second of their ramps: each change takes ``ramp`` seconds
         self.t: float | None = None
 
     # ------------------------------------------------------------------ inputs
@@ -145,9 +147,10 @@ class Governor:
             lad = self.pending.pop(0)
             keep = self.g != 0
             keys = np.union1d(lad.key, self.gkey[keep])
-            g = np.zeros(keys.size)
-            g[np.searchsorted(keys, self.gkey[keep])] = self.g[keep]
-            self.gkey, self.g, self.ladder = keys, g, lad
+            g, goal, speed = np.zeros(keys.size), np.zeros(keys.size), np.full(keys.size, 1.0 / self.ramp)
+            at = np.searchsorted(keys, self.gkey[keep])
+            g[at], goal[at], speed[at] = self.g[keep], self.goal[keep], self.speed[keep]
+            self.gkey, self.g, self.goal, self.speed, self.ladder = keys, g, goal, speed, lad
             self.m = lad.plan_steps
 
     def _decide(self, lad: GovernorLadder, ramping_down: bool) -> int:
@@ -181,10 +184,17 @@ class Governor:
         on = (li < lad.key.size) & (lad.key[li_c] == self.gkey)
         ramping_down = bool((self.g > np.where(on, lad.offsets(self.m)[li_c], 0.0) + 1e-9).any())
         self.m = self._decide(lad, ramping_down)
-        goal = np.where(on, lad.offsets(self.m)[li_c], 0.0)
-        step = dt / self.ramp
+        # Until a frame is measured there is nothing to correct the plan with: it is drawn as it is.
+        goal = np.where(on, lad.offsets(self.m)[li_c], 0.0) if self.rate is not None else np.zeros(self.g.size)
+        # A new goal starts a ramp that takes ``ramp`` seconds: two levels at once go as a chain of adjacent
+        # morphs at twice the speed (Zach's chains), so a shrink is drawn within one ramp whatever it undoes.
+        moved = goal != self.goal
+        self.speed = np.where(moved, np.maximum(np.abs(goal - self.g), 1.0) / self.ramp, self.speed)
+        self.goal = goal
+        step = dt * self.speed
         self.g = self.g + np.clip(goal - self.g, -step, step)
-        self.g[np.abs(self.g - goal) < 1e-9] = goal[np.abs(self.g - goal) < 1e-9]
+        near = np.abs(self.g - goal) < 1e-9
+        self.g[near] = goal[near]
         # What is drawn: a key partly down still draws its selected level, partly up the finer one.
         g_on = self.g[on]
         idx = li[on]
@@ -197,7 +207,7 @@ class Governor:
         settled = self.g == 0
         if settled.any() and not on[settled].all():  # forget keys that left the ladder and came back to plan
             drop = settled & ~on
-            self.gkey, self.g = self.gkey[~drop], self.g[~drop]
+            self.gkey, self.g, self.goal, self.speed = (a[~drop] for a in (self.gkey, self.g, self.goal, self.speed))
         pos = np.searchsorted(self.gkey, key)
         pos_c = np.minimum(pos, max(self.gkey.size - 1, 0))
         hit = (pos < self.gkey.size) & (self.gkey[pos_c] == key) if self.gkey.size else np.zeros(key.size, bool)
