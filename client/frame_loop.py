@@ -68,6 +68,7 @@ class FrameLoop:
         self.closed = False
         self.failing = False  # a send failed: the receiver is ending, its Closed is on the way
         self.governor: Governor | None = None  # corrects the selection every frame along each delta's ladder
+        self.governor_refused = 0  # rows the governor moved to what cannot be drawn, drawn as planned instead
 
     def send(self, msg) -> None:
         """Send on the current connection; a failure shuts it down so its receiver reports the loss."""
@@ -250,7 +251,21 @@ class FrameLoop:
         rep = d.key + k.astype(np.int64)
         weight = np.where(k > 0, np.clip(level - (k - 1.0), 0.0, 1.0), 1.0)
         weight = np.where(weight <= 1e-12, 0.0, weight)
-        ok = ~changed | self.cache.holds(rep)
+        # Drawn only where resident and, when morphing, with its morph target (the ladder's steps have theirs;
+        # a schedule mid-ramp that the governor pushes past its step does not).
+        ok = self.cache.holds(rep)
+        morph = ok & changed & (weight < 1.0)
+        if morph.any():
+            has = self.renderer.have_morph_targets(rep[morph])
+            if not has.all():  # a level the schedule's own ramp passes: its target, once, where both levels are here
+                for r in np.unique(rep[morph][~has]).tolist():
+                    targets = self.cache.morph_targets(r)
+                    if targets is not None:
+                        self.renderer.set_morph_target(r, targets)
+                has = self.renderer.have_morph_targets(rep[morph])
+            ok[np.nonzero(morph)[0][~has]] = False
+        ok |= ~changed
+        self.governor_refused = int((~ok).sum())
         return Drawn(d.key, np.where(ok, level, d.level), np.where(ok, rep, d.rep), np.where(ok, weight, d.weight))
 
     def drawn(self, t: float):

@@ -27,7 +27,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Governor", "GovernorLadder"]
+__all__ = ["Governor", "GovernorLadder", "RAMP"]
+
+#: Seconds a governor change takes by default: two frames at a 50 ms target, so a step change of the
+#: machine is absorbed within three frames, and well within the quarter second that keeps it from popping.
+RAMP = 0.1
 
 
 @dataclass(frozen=True)
@@ -110,7 +114,7 @@ class Governor:
     and up to (1 − slack / 2) × target.
     """
 
-    def __init__(self, target: float, ramp: float = 0.1, slack: float = 0.1) -> None:
+    def __init__(self, target: float, ramp: float = RAMP, slack: float = 0.1) -> None:
         if not (target > 0 and 0 < ramp <= 0.25 and 0 <= slack < 1):
             raise ValueError(f"bad governor settings target={target} ramp={ramp} slack={slack}")
         self.target, self.ramp, self.slack = float(target), float(ramp), float(slack)
@@ -181,11 +185,17 @@ class Governor:
         # Target offset of every key with one: the state's for the ladder's keys, 0 for the rest.
         li = np.searchsorted(lad.key, self.gkey)
         li_c = np.minimum(li, max(lad.key.size - 1, 0))
-        on = (li < lad.key.size) & (lad.key[li_c] == self.gkey)
-        ramping_down = bool((self.g > np.where(on, lad.offsets(self.m)[li_c], 0.0) + 1e-9).any())
+        if lad.key.size:
+            on = (li < lad.key.size) & (lad.key[li_c] == self.gkey)
+            planned = np.where(on, lad.offsets(self.m)[li_c], 0.0)
+        else:  # an empty ladder: every key ramps back to the plan
+            on, li_c, planned = np.zeros(self.gkey.size, bool), np.zeros(self.gkey.size, np.int64), 0.0
+        ramping_down = bool((self.g > planned + 1e-9).any())
         self.m = self._decide(lad, ramping_down)
         # Until a frame is measured there is nothing to correct the plan with: it is drawn as it is.
-        goal = np.where(on, lad.offsets(self.m)[li_c], 0.0) if self.rate is not None else np.zeros(self.g.size)
+        goal = np.zeros(self.g.size)
+        if self.rate is not None and lad.key.size:
+            goal = np.where(on, lad.offsets(self.m)[li_c], 0.0)
         # A new goal starts a ramp that takes ``ramp`` seconds: two levels at once go as a chain of adjacent
         # morphs at twice the speed (Zach's chains), so a shrink is drawn within one ramp whatever it undoes.
         moved = goal != self.goal

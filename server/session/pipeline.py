@@ -60,6 +60,7 @@ class Pipeline:
         self.last_stats: dict = {}
         self.last_gate: dict = {}
         self.last_tail = 1.0  # the budget's tail ratio at the last selection
+        self.ladder_to = np.zeros(0, np.int64)  # where the last delta's ladder steps go (kept resident)
         self.deferred = 0  # choices that waited for bytes
         self.fallbacks = 0  # ... and were drawn coarser meanwhile
 
@@ -87,6 +88,7 @@ class Pipeline:
         self.ramp = MorphScheduler(self.config.tau, morph=hello.morph)
         self.prev_rep = np.full(table.n_objects, -1, np.int64)
         self.drawn = np.zeros(0, np.int64)
+        self.ladder_to = np.zeros(0, np.int64)
 
     # ------------------------------------------------------------------ feedback
 
@@ -151,9 +153,11 @@ class Pipeline:
         ok = below >= 0
         ok[ok] = table.rep_object[below[ok]] == table.rep_object[below[ok] + 1]
         below = below[ok & mirror.resident[np.maximum(below, 0)]]
-        new, drop = mirror.plan(np.concatenate([reps, drawn_groups]), np.concatenate([needed, groups, ahead, below]),
-                                seq)
+        # The previous ladder governs until this delta's switch, and its steps ramp back after: kept too.
+        new, drop = mirror.plan(np.concatenate([reps, drawn_groups]),
+                                np.concatenate([needed, groups, ahead, below, self.ladder_to]), seq)
         ladder = self._ladder(reps, algorithm, view, cost, mirror) if hello.governor else Ladder.empty()
+        self.ladder_to = ladder.to
         if new.size and rank is not None:
             # Best benefit per byte first (a chain's intermediates with their target, coarse before fine).
             order = rank[table.rep_object[new]]

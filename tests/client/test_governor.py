@@ -135,6 +135,14 @@ def test_without_a_ladder_or_a_measurement_the_plan_is_drawn():
     gov.take(world.ladder(t0=1.0))
     assert np.array_equal(gov.apply(0.5, world.key, world.level), world.level)  # not governing before t0
     assert np.array_equal(gov.apply(1.0, world.key, world.level), world.level)  # no frame measured yet
+    # A delta without steps after one with them: every key ramps back to its planned level.
+    gov.observe(TARGET)
+    for i in range(3):
+        gov.apply(1.05 + i * DT, world.key, world.level)
+    gov.take(GovernorLadder.build(1.2, [], [], [], [], world.base))
+    for i in range(6):
+        level = gov.apply(1.2 + i * DT, world.key, world.level)
+    assert np.array_equal(level, world.level)
     with pytest.raises(ValueError):
         Governor(TARGET, ramp=0.5)  # a change must take no more than a quarter second
 
