@@ -11,8 +11,9 @@ before its object's step down: values are made concave per object), form one
 list; a state is a prefix of it. Each frame the governor predicts the frame's
 time as the time per unit of drawn model cost measured over the last frame times
 the units of a state, then takes decrements of lowest value until the prediction
-fits the target, or increments of highest value while it fits (below a slack, so
-noise does not make it chatter; and none while a decrement is still ramping).
+fits its aim (a share of the target), or increments of highest value while it
+fits (outside a band around the aim, so noise does not make it chatter; and none
+while a decrement is still ramping).
 
 A change is never drawn at once: each object's offset from the plan ramps over
 ``ramp`` seconds (a change of two levels as a chain of two adjacent morphs), drawn
@@ -110,14 +111,15 @@ class Governor:
     """Per-frame correction of the drawn levels along the current ladder.
 
     target : frame time to hold (s); ramp : seconds a change of one level takes (≤ 0.25 s);
-    slack : increments are taken only while the prediction is below (1 − slack) × target,
-    and up to (1 − slack / 2) × target.
+    aim : share of the target the predicted frame is steered to (below 1: a frame's own noise is then
+    less often over the target); slack : the band around the aim within which the state is kept
+    (± slack × aim), so noise does not make it chatter.
     """
 
-    def __init__(self, target: float, ramp: float = RAMP, slack: float = 0.1) -> None:
-        if not (target > 0 and 0 < ramp <= 0.25 and 0 <= slack < 1):
-            raise ValueError(f"bad governor settings target={target} ramp={ramp} slack={slack}")
-        self.target, self.ramp, self.slack = float(target), float(ramp), float(slack)
+    def __init__(self, target: float, ramp: float = RAMP, aim: float = 0.92, slack: float = 0.05) -> None:
+        if not (target > 0 and 0 < ramp <= 0.25 and 0 < aim <= 1 and 0 <= slack < 1 and aim * (1 + slack) <= 1):
+            raise ValueError(f"bad governor settings target={target} ramp={ramp} aim={aim} slack={slack}")
+        self.target, self.ramp, self.aim, self.slack = float(target), float(ramp), float(aim), float(slack)
         self.pending: list[GovernorLadder] = []
         self.ladder: GovernorLadder | None = None
         self.m = 0
@@ -158,16 +160,18 @@ class Governor:
             self.m = lad.plan_steps
 
     def _decide(self, lad: GovernorLadder, ramping_down: bool) -> int:
-        """The number of steps to take: shrink to fit the target, or grow while it fits below the slack."""
+        """The number of steps to take: shrink to the aim when the prediction is above its band, grow to it
+        when below (and no decrement is still ramping), else stay."""
         if self.rate is None or self.rate <= 0:
             return self.m
-        cap = self.target / self.rate  # model seconds that fit
+        cap = self.target / self.rate  # model seconds that fit in the target
         cum, m = lad.cum, min(self.m, lad.cum.size - 1)
         now = lad.fixed + cum[m]
-        if now > cap:
-            return int(max(np.searchsorted(cum, cap - lad.fixed, side="right") - 1, 0))
-        if now < (1.0 - self.slack) * cap and not ramping_down:
-            return int(max(np.searchsorted(cum, (1.0 - 0.5 * self.slack) * cap - lad.fixed, side="right") - 1, m))
+        fit = int(max(np.searchsorted(cum, self.aim * cap - lad.fixed, side="right") - 1, 0))
+        if now > (1.0 + self.slack) * self.aim * cap:
+            return fit
+        if now < (1.0 - self.slack) * self.aim * cap and not ramping_down:
+            return max(fit, m)
         return m
 
     def apply(self, t: float, key: np.ndarray, level: np.ndarray) -> np.ndarray:
