@@ -230,7 +230,8 @@ class FrameLoop:
         cost = np.asarray(delta.ladder_cost, np.float64)[held_idx]
         value = np.asarray(delta.ladder_value, np.float64)[held_idx]
         key = reps - levels.astype(np.int64)
-        self.governor.take(GovernorLadder.build(delta.t0, key, np.sign(to - rep), cost, value, delta.ladder_base),
+        self.governor.take(GovernorLadder.build(delta.t0, key, np.sign(to - rep), cost, value, delta.ladder_base,
+                                                levels),
                            reset=delta.reset or delta.start is None)
         for fine in np.unique(np.maximum(rep, to)).tolist():
             if not self.renderer.has_morph_target(fine):

@@ -47,6 +47,7 @@ class GovernorLadder:
     cum : (k + 1,) running cost of the steps in that order (cum[m]: the first m taken)
     fixed : model seconds of the all-coarse state (the selection less every step down)
     base : model seconds of the selection as planned
+    lo, hi : (n,) the levels the key's steps reach (the selected level less its step down, plus its step up)
     """
 
     t0: float
@@ -60,11 +61,14 @@ class GovernorLadder:
     cum: np.ndarray
     fixed: float
     base: float
+    lo: np.ndarray
+    hi: np.ndarray
 
     @classmethod
     def build(cls, t0: float, key: np.ndarray, step: np.ndarray, cost: np.ndarray, value: np.ndarray,
-              base: float) -> "GovernorLadder":
-        """From a delta's steps: ``key`` (k,) object keys, ``step`` (k,) −1 down / +1 up, ``cost`` and ``value``."""
+              base: float, level: np.ndarray | None = None) -> "GovernorLadder":
+        """From a delta's steps: ``key`` (k,) object keys, ``step`` (k,) −1 down / +1 up, ``cost`` and ``value``;
+        ``level`` (k,) the selected level each starts from (None: the levels are not bounded)."""
         key = np.asarray(key, np.int64)
         step = np.asarray(step, np.int64)
         cost = np.asarray(cost, np.float64)
@@ -93,8 +97,14 @@ class GovernorLadder:
         rank_up[ki[is_up]] = rank[is_up]
         cum = np.concatenate([[0.0], np.cumsum(c[order])])
         fixed = float(base) - float(down_cost.sum())
+        if level is None:
+            lo, hi = np.full(n, -np.inf), np.full(n, np.inf)
+        else:
+            sel = np.zeros(n)
+            sel[idx] = np.asarray(level, np.float64)
+            lo, hi = sel - has_down, sel + has_up
         return cls(float(t0), keys, down_cost, up_cost, has_down, has_up, rank_down, rank_up, cum, fixed,
-                   float(base))
+                   float(base), lo, hi)
 
     def offsets(self, m: int) -> np.ndarray:
         """(n,) level offset from the plan of each key in the state that takes the first ``m`` steps."""
@@ -131,6 +141,8 @@ class Governor:
         self.g = np.zeros(0)  # their drawn offsets (continuous levels)
         self.goal = np.zeros(0)  # the offsets they ramp to
         self.speed = np.zeros(0)  # levels per second of their ramps: each change takes ``ramp`` seconds
+        self.lo = np.zeros(0)  # the levels their steps reach: a governed level stays within them, or within
+        self.hi = np.zeros(0)  # where the schedule's own ramp has it
         self.t: float | None = None
 
     # ------------------------------------------------------------------ inputs
@@ -154,9 +166,14 @@ class Governor:
             keep = self.g != 0
             keys = np.union1d(lad.key, self.gkey[keep])
             g, goal, speed = np.zeros(keys.size), np.zeros(keys.size), np.full(keys.size, 1.0 / self.ramp)
+            lo, hi = np.full(keys.size, -np.inf), np.full(keys.size, np.inf)
             at = np.searchsorted(keys, self.gkey[keep])
             g[at], goal[at], speed[at] = self.g[keep], self.goal[keep], self.speed[keep]
+            lo[at], hi[at] = self.lo[keep], self.hi[keep]
+            new = np.searchsorted(keys, lad.key)
+            lo[new], hi[new] = lad.lo, lad.hi
             self.gkey, self.g, self.goal, self.speed, self.ladder = keys, g, goal, speed, lad
+            self.lo, self.hi = lo, hi
             self.m = lad.plan_steps
 
     def _decide(self, lad: GovernorLadder, ramping_down: bool) -> int:
@@ -221,8 +238,15 @@ class Governor:
         settled = self.g == 0
         if settled.any() and not on[settled].all():  # forget keys that left the ladder and came back to plan
             drop = settled & ~on
-            self.gkey, self.g, self.goal, self.speed = (a[~drop] for a in (self.gkey, self.g, self.goal, self.speed))
+            self.gkey, self.g, self.goal, self.speed, self.lo, self.hi = (
+                a[~drop] for a in (self.gkey, self.g, self.goal, self.speed, self.lo, self.hi))
         pos = np.searchsorted(self.gkey, key)
         pos_c = np.minimum(pos, max(self.gkey.size - 1, 0))
-        hit = (pos < self.gkey.size) & (self.gkey[pos_c] == key) if self.gkey.size else np.zeros(key.size, bool)
-        return np.maximum(level + np.where(hit, self.g[pos_c] if self.gkey.size else 0.0, 0.0), 0.0)
+        if not self.gkey.size:
+            return level
+        hit = (pos < self.gkey.size) & (self.gkey[pos_c] == key)
+        # Within the levels the steps reach (resident, with their morph targets), or the schedule's own level
+        # where its ramp lies outside them: a bound that moves with the level, so nothing jumps.
+        lo = np.minimum(level, np.where(hit, self.lo[pos_c], -np.inf))
+        hi = np.maximum(level, np.where(hit, self.hi[pos_c], np.inf))
+        return np.maximum(np.clip(level + np.where(hit, self.g[pos_c], 0.0), lo, hi), 0.0)

@@ -38,7 +38,7 @@ class World:
         step = np.concatenate([-np.ones(int(d.sum()), np.int64), np.ones(int(u.sum()), np.int64)])
         cost = np.concatenate([self.down[d], self.up[u]])
         value = np.concatenate([self.value_down[d], self.value_up[u]])
-        return GovernorLadder.build(t0, key, step, cost, value, self.base)
+        return GovernorLadder.build(t0, key, step, cost, value, self.base, np.concatenate([self.level[d], self.level[u]]))
 
     def model_seconds(self, level: np.ndarray) -> float:
         """The exact cost of what ``level`` draws: a level partly down draws the selected one, partly up the finer."""
