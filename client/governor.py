@@ -171,7 +171,11 @@ class Governor:
             g[at], goal[at], speed[at] = self.g[keep], self.goal[keep], self.speed[keep]
             lo[at], hi[at] = self.lo[keep], self.hi[keep]
             new = np.searchsorted(keys, lad.key)
-            lo[new], hi[new] = lad.lo, lad.hi
+            # A key still off its plan keeps the levels its old steps reached until it is back (they stay
+            # resident that long): a bound that shrank at once would make its level jump.
+            moving = g[new] != 0
+            lo[new] = np.where(moving, np.minimum(lo[new], lad.lo), lad.lo)
+            hi[new] = np.where(moving, np.maximum(hi[new], lad.hi), lad.hi)
             self.gkey, self.g, self.goal, self.speed, self.ladder = keys, g, goal, speed, lad
             self.lo, self.hi = lo, hi
             self.m = lad.plan_steps
