@@ -126,7 +126,7 @@ class Governor:
     (± slack × aim), so noise does not make it chatter.
     """
 
-    def __init__(self, target: float, ramp: float = RAMP, aim: float = 0.92, slack: float = 0.05) -> None:
+    def __init__(self, target: float, ramp: float = RAMP, aim: float = 0.97, slack: float = 0.03) -> None:
         if not (target > 0 and 0 < ramp <= 0.25 and 0 < aim <= 1 and 0 <= slack < 1 and aim * (1 + slack) <= 1):
             raise ValueError(f"bad governor settings target={target} ramp={ramp} aim={aim} slack={slack}")
         self.target, self.ramp, self.aim, self.slack = float(target), float(ramp), float(aim), float(slack)
