@@ -245,6 +245,8 @@ def demo(
     out: Path = typer.Option(Path("walkstream-out"), help="folder for the chart"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
     solver: str = typer.Option("greedy", help=SOLVER_HELP),
+    governor: bool = typer.Option(True, "--governor/--no-governor",
+                                  help="the client corrects each frame along the delta's ladder"),
 ) -> None:
     """Build the demo scene if needed, serve it on loopback and run the headless client over its tour."""
     from rich.console import Console
@@ -286,7 +288,7 @@ def demo(
     console.print(f"[bold]walkstream demo[/bold]: scene {scene!r} from {path}, {solver}, {duration:.0f} s at {target_ms:.0f} ms")
     run, summary, chart = run_demo(
         path, scene=scene, duration=duration, target=target, viewport=(width, height), out=out, on_frame=on_frame,
-        solver=solver,
+        solver=solver, governor=governor,
     )
     if summary.mean_ok and summary.p95_ok:
         verdict = "holds"

@@ -183,6 +183,7 @@ def run_demo(
     out: Path,
     on_frame: Callable | None = None,
     solver: str = "greedy",
+    governor: bool = True,
 ):
     """Serve ``store``, run the client over the tour, return (run, summary, chart path)."""
     from client.app import run_client
@@ -190,7 +191,7 @@ def run_demo(
     with ServerProcess([store]) as server:
         run = run_client(
             server.url, scene, duration=duration, viewport=viewport, target_frame_time=target, on_frame=on_frame,
-            solver=solver,
+            solver=solver, governor=governor,
         )
     summary = summarize(run, target)
     chart = write_chart(run, target, out / "demo-frames.png", title=f"walkstream demo — {scene}, {solver}, target {target * 1e3:.0f} ms")

@@ -30,6 +30,7 @@ from proto.messages import ALGORITHMS, PROTOCOL_VERSION, Error, Hello
 
 from .connection import Arrived, Item, Link, Redialled, open_patiently, with_client
 from .frame_loop import FrameLoop, quiet_collector, run_frames
+from .governor import Governor
 from .navigation import Navigator, Tour
 from .records import ClientRun, FrameRecord
 from .renderer import Renderer
@@ -133,6 +134,8 @@ def run_client(
         inbox: queue.Queue[Item] = queue.Queue()
         link.attach(ws, welcome, nbytes, inbox)
         loop = FrameLoop(run, renderer, inbox, ws, cache_bytes=cache_bytes, link=link, start=start)
+        if governor:
+            loop.governor = Governor(target_frame_time)
         try:
             loop.splats = SplatLayer(renderer.ctx)
             with quiet_collector():

@@ -31,9 +31,10 @@ from proto.messages import Ack, AlgorithmTerms, Camera, Delta, Error, FrameRepor
 
 from .cache import ResidentCache
 from .connection import Arrived, Closed, GaveUp, Item, Link, Redialled
+from .governor import Governor, GovernorLadder
 from .navigation import Navigator, Tour
 from .records import ClientRun, FrameRecord, FrameTrace, Reconnect
-from .schedule import Schedule
+from .schedule import Drawn, Schedule
 
 if TYPE_CHECKING:
     from .renderer import Renderer
@@ -66,6 +67,8 @@ class FrameLoop:
         self.drawn_vegetation: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0))
         self.closed = False
         self.failing = False  # a send failed: the receiver is ending, its Closed is on the way
+        self.governor: Governor | None = None  # corrects the selection every frame along each delta's ladder
+        self.governor_refused = 0  # rows the governor moved to what cannot be drawn, drawn as planned instead
 
     def send(self, msg) -> None:
         """Send on the current connection; a failure shuts it down so its receiver reports the loss."""
@@ -113,6 +116,8 @@ class FrameLoop:
                 cols = {k: [getattr(m, k)[i] for i in keep] for k in ("rep", "level_from", "level_to", "t0", "t1")}
                 scheduled = delta.model_copy(update={"morphs": m.model_copy(update=cols)})
             self._schedule(scheduled, item.t)
+            if self.governor is not None:
+                self._ladder(delta)
             self.upload_time += time.perf_counter() - t0
             self.last = delta
             cache = self.cache  # what it holds now, so the server can check its mirror
@@ -209,10 +214,65 @@ class FrameLoop:
                     if targets is not None:
                         self.renderer.set_morph_target(rep, targets)
 
+    def _ladder(self, delta: Delta) -> None:
+        """Give the governor the delta's ladder, over the steps whose both ends the cache holds, and make
+        the finer end of each a morph target so a step is drawn as a geomorph."""
+        rep = np.asarray(delta.ladder_rep, np.int64)
+        to = np.asarray(delta.ladder_to, np.int64)
+        held = self.cache.holds(rep) & self.cache.holds(to)
+        rep, to = rep[held], to[held]
+        reps, levels = self.cache.levels(rep.tolist())
+        if reps.size != rep.size:  # a tree group or an unknown kind: no steps for it
+            keep = np.isin(rep, reps)
+            rep, to, held_idx = rep[keep], to[keep], np.nonzero(held)[0][keep]
+        else:
+            held_idx = np.nonzero(held)[0]
+        cost = np.asarray(delta.ladder_cost, np.float64)[held_idx]
+        value = np.asarray(delta.ladder_value, np.float64)[held_idx]
+        key = reps - levels.astype(np.int64)
+        self.governor.take(GovernorLadder.build(delta.t0, key, np.sign(to - rep), cost, value, delta.ladder_base,
+                                                levels),
+                           reset=delta.reset or delta.start is None)
+        for fine in np.unique(np.maximum(rep, to)).tolist():
+            if not self.renderer.has_morph_target(fine):
+                targets = self.cache.morph_targets(fine)
+                if targets is not None:
+                    self.renderer.set_morph_target(fine, targets)
+
+    def governed(self, t: float, d: Drawn) -> Drawn:
+        """The schedule's rows with the governor's levels, where what they draw is resident (else as planned)."""
+        gov = self.governor
+        if gov is None:
+            return d
+        level = gov.apply(t, d.key, d.level)
+        changed = level != d.level
+        if not changed.any():
+            return d
+        k = np.maximum(np.ceil(level - 1e-9), 0.0)
+        rep = d.key + k.astype(np.int64)
+        weight = np.where(k > 0, np.clip(level - (k - 1.0), 0.0, 1.0), 1.0)
+        weight = np.where(weight <= 1e-12, 0.0, weight)
+        # Drawn only where resident and, when morphing, with its morph target (the ladder's steps have theirs;
+        # a schedule mid-ramp that the governor pushes past its step does not).
+        ok = self.cache.holds(rep)
+        morph = ok & changed & (weight < 1.0)
+        if morph.any():
+            has = self.renderer.have_morph_targets(rep[morph])
+            if not has.all():  # a level the schedule's own ramp passes: its target, once, where both levels are here
+                for r in np.unique(rep[morph][~has]).tolist():
+                    targets = self.cache.morph_targets(r)
+                    if targets is not None:
+                        self.renderer.set_morph_target(r, targets)
+                has = self.renderer.have_morph_targets(rep[morph])
+            ok[np.nonzero(morph)[0][~has]] = False
+        ok |= ~changed
+        self.governor_refused = int((~ok).sum())
+        return Drawn(d.key, np.where(ok, level, d.level), np.where(ok, rep, d.rep), np.where(ok, weight, d.weight))
+
     def drawn(self, t: float):
         """Representations, morph weights and the full schedule rows to draw at client time t."""
         self.schedule.advance(t)
-        d = self.schedule.at(t)
+        d = self.governed(t, self.schedule.at(t))
         here = self.cache.holds(d.rep)
         self.run.skipped += int((~here).sum())
         return d, d.rep[here], d.weight[here]
@@ -317,6 +377,12 @@ def run_frames(
                               algorithms=drawn_algorithms, levels=rows.level[here],
                               layers=layers)
         terms = stats.terms
+        gov = loop.governor
+        if gov is not None:
+            drew = (gov.down, gov.up, gov.units, gov.predicted)
+            gov.observe(stats.time)
+        else:
+            drew = (0, 0, 0.0, 0.0)
         loop.send(FrameReport(
             frame=frame, t=t, time=min(max(stats.time, 1e-9), 60.0), triangles=stats.triangles,
             vertices=stats.vertices, draws=stats.draws, selection=cache.seq, pixels=stats.pixels,
@@ -324,6 +390,7 @@ def run_frames(
             cpu_time=min(stats.cpu_time, 60.0),
             terms=None if terms is None else AlgorithmTerms(
                 triangles=terms.triangles, vertices=terms.vertices, pixels=terms.pixels, draws=terms.draws),
+            governor_down=drew[0], governor_up=drew[1], governor_cost=min(max(drew[2], 0.0), 3600.0),
         ))
         last = loop.last
         record = FrameRecord(
@@ -335,6 +402,7 @@ def run_frames(
             terms=None if terms is None else {"triangles": list(terms.triangles), "vertices": list(terms.vertices),
                                               "pixels": list(terms.pixels), "draws": list(terms.draws)},
             bytes=loop.applied_bytes, compute=last.compute if last else 0.0,
+            governor_down=drew[0], governor_up=drew[1], governor_cost=drew[2], governor_predicted=drew[3],
         )
         if trace:
             veg, res = loop.drawn_vegetation

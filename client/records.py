@@ -45,6 +45,10 @@ class FrameRecord:
     terms: dict | None = None  # per rendering algorithm: triangles, vertices, pixels, draws (lists)
     bytes: int = 0  # bytes of the deltas applied since the previous frame (as received: framed, maybe compressed)
     compute: float = 0.0  # the server's selection time of the latest delta applied (s)
+    governor_down: int = 0  # objects the frame governor drew coarser than the selection
+    governor_up: int = 0  # ... and finer
+    governor_cost: float = 0.0  # model seconds of what it drew (0: no governor)
+    governor_predicted: float = 0.0  # the time it predicted for the frame (s; 0: no prediction yet)
 
 
 @dataclass(frozen=True)

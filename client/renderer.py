@@ -335,6 +335,11 @@ class Renderer:
             self._slots.bound(slot, lo, hi)
         self._slots.target[slot] = True
 
+    def have_morph_targets(self, reps: np.ndarray) -> np.ndarray:
+        """(s,) bool — which of ``reps`` are uploaded with a morph target (vectorised: the per-frame check)."""
+        slots = self._slots.lookup(np.asarray(reps, np.int64))
+        return (slots >= 0) & self._slots.target[np.maximum(slots, 0)] if slots.size else np.zeros(0, bool)
+
     def has_morph_target(self, rep: int) -> bool:
         """Whether ``rep`` is uploaded with a morph target."""
         slot = self.meshes.get(int(rep))

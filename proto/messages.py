@@ -226,6 +226,11 @@ class FrameReport(_Message):
     cpu_time: Annotated[float, Field(ge=0.0, le=60.0)] = 0.0
     #: The same work split by rendering algorithm (None: all of it flat)
     terms: AlgorithmTerms | None = None
+    #: What the frame governor drew: objects drawn coarser and finer than the selection, and the drawn
+    #: selection's cost in the delta's model seconds (``Delta.ladder_base`` plus its steps; 0: no governor)
+    governor_down: Count = 0
+    governor_up: Count = 0
+    governor_cost: Annotated[float, Field(ge=0.0, le=3600.0)] = 0.0
 
 
 # --------------------------------------------------------------------------- server → client
@@ -342,6 +347,14 @@ class Delta(_Message):
     vegetation: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
     resolution: Annotated[list[Annotated[float, Field(ge=0.0, le=1.0)]], Field(max_length=MAX_LIST)] = []
     ramps: Morphs = Morphs()
+    #: The frame governor's ladder (``server.select.ladder``), lowest value first: a step from the selected
+    #: ``ladder_rep`` to the adjacent level ``ladder_to`` (± 1) saves (down) or spends (up) ``ladder_cost``
+    #: model seconds for a benefit change of ``ladder_value`` per second; ``ladder_base`` is the selection's cost.
+    ladder_rep: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
+    ladder_to: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
+    ladder_cost: Annotated[list[Annotated[float, Field(gt=0.0, le=60.0)]], Field(max_length=MAX_LIST)] = []
+    ladder_value: Annotated[list[Annotated[float, Field(ge=0.0, le=1.0e12)]], Field(max_length=MAX_LIST)] = []
+    ladder_base: Annotated[float, Field(ge=0.0, le=3600.0)] = 0.0
 
     @model_validator(mode="after")
     def _interval(self) -> "Delta":
@@ -357,6 +370,15 @@ class Delta(_Message):
             raise ValueError("vegetation ramps are resolutions in [0, 1]")
         if any(a != int(a) for a in self.morphs.level_from) or any(b != int(b) for b in self.morphs.level_to):
             raise ValueError("mesh morphs go between whole levels")
+        n = len(self.ladder_rep)
+        if not (len(self.ladder_to) == len(self.ladder_cost) == len(self.ladder_value) == n):
+            raise ValueError("ladder columns must have equal lengths")
+        if any(abs(b - a) != 1 for a, b in zip(self.ladder_rep, self.ladder_to)):
+            raise ValueError("a ladder step goes to an adjacent level (ladder_to = ladder_rep ± 1)")
+        if n and not set(self.ladder_rep) <= set(self.selection):
+            raise ValueError("a ladder step must start from a selected representation")
+        if any(b < a for a, b in zip(self.ladder_value, self.ladder_value[1:])):
+            raise ValueError("the ladder must be ordered by value, lowest first")
         return self
 
 

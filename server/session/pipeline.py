@@ -23,6 +23,7 @@ from proto.messages import ALGORITHMS, Delta, FrameReport, ModelAdd, Morphs, Rep
 
 from ..clock import Delivery
 from ..select.cost import FrameCostModel
+from ..select.ladder import Ladder, build_ladder, prefetch
 from ..select.morph import MorphScheduler, mark
 from ..select.selection import Interval, Memory, select
 from ..select.snapshot import dump_fields, load_fields
@@ -59,6 +60,7 @@ class Pipeline:
         self.last_stats: dict = {}
         self.last_gate: dict = {}
         self.last_tail = 1.0  # the budget's tail ratio at the last selection
+        self.ladder_to = np.zeros(0, np.int64)  # where the last delta's ladder steps go (kept resident)
         self.deferred = 0  # choices that waited for bytes
         self.fallbacks = 0  # ... and were drawn coarser meanwhile
 
@@ -86,6 +88,7 @@ class Pipeline:
         self.ramp = MorphScheduler(self.config.tau, morph=hello.morph)
         self.prev_rep = np.full(table.n_objects, -1, np.int64)
         self.drawn = np.zeros(0, np.int64)
+        self.ladder_to = np.zeros(0, np.int64)
 
     # ------------------------------------------------------------------ feedback
 
@@ -110,6 +113,10 @@ class Pipeline:
         # the budget quantile, not the mean one, meets the target: the model's recent held-out measured ÷
         # predicted ratio at that quantile shrinks what the selection may spend.
         tail = cost.tail_ratio(config.budget_quantile) if config.budget_quantile > 0 else 1.0
+        if hello.governor:
+            # The client's governor holds each frame to the target: the mean frame is budgeted, the tail
+            # ratio only caps how far the model's median error may shrink it.
+            tail = min(cost.tail_ratio(0.5), tail)
         self.last_tail = tail
         budget = max(hello.target_frame_time / tail - cost.overhead, 0.25 * hello.target_frame_time)
         # The only clock the selection sees: an anytime solver stops at select_limit with its best so far.
@@ -123,6 +130,7 @@ class Pipeline:
         if len(self.pixels_predicted) > 64:
             self.pixels_predicted.pop(min(self.pixels_predicted))
         reps, algorithm, rank = self._gate(choice.reps, choice.algorithm, view, now, mirror, delivery)
+        ahead = self._ahead(reps, view, mirror) if hello.governor else np.zeros(0, np.int64)
         level = table.rep_level[reps]
         key = reps - level
         kind, _ = mark(table.rep_parent, self.drawn, reps)
@@ -141,7 +149,15 @@ class Pipeline:
             # Tree groups drawn now, and those a ramp still draws from the window on, must be resident too.
             drawn_groups = np.asarray(choice.x_reps, np.int64)[np.asarray(choice.x) > 0]
             groups = np.union1d(drawn_groups, rt.needed_key[rt.needed_hi > 0]).astype(np.int64)
-        new, drop = mirror.plan(np.concatenate([reps, drawn_groups]), np.concatenate([needed, groups]), seq)
+        below = reps - 1 if hello.governor else np.zeros(0, np.int64)  # the ladder's steps down stay resident
+        ok = below >= 0
+        ok[ok] = table.rep_object[below[ok]] == table.rep_object[below[ok] + 1]
+        below = below[ok & mirror.resident[np.maximum(below, 0)]]
+        # The previous ladder governs until this delta's switch, and its steps ramp back after: kept too.
+        new, drop = mirror.plan(np.concatenate([reps, drawn_groups]),
+                                np.concatenate([needed, groups, ahead, below, self.ladder_to]), seq)
+        ladder = self._ladder(reps, algorithm, view, cost, mirror) if hello.governor else Ladder.empty()
+        self.ladder_to = ladder.to
         if new.size and rank is not None:
             # Best benefit per byte first (a chain's intermediates with their target, coarse before fine).
             order = rank[table.rep_object[new]]
@@ -172,8 +188,33 @@ class Pipeline:
             vegetation=vegetation,
             resolution=resolution,
             ramps=ramps,
+            ladder_rep=ladder.rep.tolist(),
+            ladder_to=ladder.to.tolist(),
+            ladder_cost=np.minimum(ladder.cost, 60.0).tolist(),
+            ladder_value=ladder.value.tolist(),
+            ladder_base=min(ladder.base, 3600.0),
         )
         return delta, nbytes, took
+
+    def _arrays(self, mirror: CacheMirror) -> dict:
+        table = self.table
+        return dict(rep_object=table.rep_object, rep_faces=table.rep_faces, object_lo=table.object_lo,
+                    object_hi=table.object_hi, resident=mirror.resident, eligible=~table.rep_trees)
+
+    def _ahead(self, reps: np.ndarray, view, mirror: CacheMirror) -> np.ndarray:
+        """Finer levels of the selection sent ahead for the governor's steps up, with the bytes the gate left."""
+        gate = self.last_gate
+        left = max(float(gate.get("budget", gate.get("link", 0.0))) - float(gate.get("bytes", 0)), 0.0)
+        cam = view.views[0] if isinstance(view, Interval) else view
+        return prefetch(reps, cam, rep_bytes=self.table.rep_bytes, left=left, **self._arrays(mirror))
+
+    def _ladder(self, reps: np.ndarray, algorithm, view, cost: FrameCostModel, mirror: CacheMirror) -> Ladder:
+        """The governor's ladder for the gated selection, over what the client holds after this delta."""
+        cam = view.views[0] if isinstance(view, Interval) else view
+        arrays = self._arrays(mirror)
+        mesh = arrays["eligible"][reps]
+        return build_ladder(reps[mesh], None if algorithm is None else np.asarray(algorithm)[mesh], cam, cost,
+                            rep_vertices=self.scene.flat.rep_vertices, pixel_scale=self.pixel_scale, **arrays)
 
     def _gate(self, reps: np.ndarray, algorithm, view, now: float, mirror: CacheMirror, delivery: Delivery):
         """The selection as the link allows it (``gate.through_gate``), with the send order per object: bytes

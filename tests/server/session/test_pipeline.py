@@ -39,7 +39,8 @@ def scenes(demo_store):
 class Link:
     """A session and a simulated client joined by a link with a fixed one-way delay."""
 
-    def __init__(self, scenes, *, one_way=0.02, config=None, predict=True, morph=True, poses=None, budget=0.05):
+    def __init__(self, scenes, *, one_way=0.02, config=None, predict=True, morph=True, poses=None, budget=0.05,
+                 governor=False):
         self.session = Session(scenes, "sim", config or SessionConfig(), stopwatch=perf_counter)
         self.index = next(iter(scenes.values())).index
         self.one_way = one_way
@@ -52,7 +53,7 @@ class Link:
         self.resident_log: list[tuple[float, frozenset]] = []
         self.poses = poses or Tour(self.index.tour).pose_at
         hello = Hello(protocol=PROTOCOL_VERSION, scene=self.index.name, viewport=[640, 360],
-                      target_frame_time=budget, predict=predict, morph=morph)
+                      target_frame_time=budget, predict=predict, morph=morph, governor=governor)
         self._to_client(self.session.receive(encode(hello), 0.0))
 
     def _to_client(self, messages):

@@ -1,0 +1,165 @@
+"""The frame governor on its own: injected frame times, an exact cost model, ladders made up by hypothesis."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from client.governor import Governor, GovernorLadder
+
+DT = 0.05
+TARGET = 0.05
+
+
+class World:
+    """A steady selection: object i (key 10·i) at level 2, with steps down and up of known cost."""
+
+    def __init__(self, n: int, seed: int, overhead: float = 0.002, down_share: float = 1.0, up_share: float = 1.0):
+        rng = np.random.default_rng(seed)
+        self.key = np.arange(n, dtype=np.int64) * 10
+        self.level = np.full(n, 2.0)
+        self.cost = rng.uniform(1e-4, 1e-3, n)  # model seconds of each object's selected level
+        self.down = self.cost * rng.uniform(0.2, 0.7, n)  # saved by its next coarser level
+        self.up = self.cost * rng.uniform(0.3, 1.5, n)  # spent by its next finer level
+        self.has_down = rng.random(n) < down_share
+        self.has_up = rng.random(n) < up_share
+        self.value_down = rng.uniform(0.5, 4.0, n)
+        self.value_up = self.value_down * rng.uniform(0.1, 1.2, n)  # not always concave: the governor makes it so
+        self.overhead = overhead
+        self.base = overhead + float(self.cost.sum())
+
+    def ladder(self, t0: float = 0.0) -> GovernorLadder:
+        d, u = self.has_down, self.has_up
+        key = np.concatenate([self.key[d], self.key[u]])
+        step = np.concatenate([-np.ones(int(d.sum()), np.int64), np.ones(int(u.sum()), np.int64)])
+        cost = np.concatenate([self.down[d], self.up[u]])
+        value = np.concatenate([self.value_down[d], self.value_up[u]])
+        return GovernorLadder.build(t0, key, step, cost, value, self.base, np.concatenate([self.level[d], self.level[u]]))
+
+    def model_seconds(self, level: np.ndarray) -> float:
+        """The exact cost of what ``level`` draws: a level partly down draws the selected one, partly up the finer."""
+        drawn = np.ceil(level - 1e-9)
+        c = np.where(drawn < 2, self.cost - self.down, np.where(drawn > 2, self.cost + self.up, self.cost))
+        return self.overhead + float(c.sum())
+
+
+def frames(world: World, gov: Governor, rate, count: int):
+    """Run ``count`` frames; ``rate(i)`` is the machine's seconds per model second at frame i."""
+    out = []
+    for i in range(count):
+        level = gov.apply(i * DT, world.key, world.level)
+        spent = rate(i) * world.model_seconds(level)
+        gov.observe(spent)
+        out.append((level, spent, gov.predicted))
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 300), seed=st.integers(0, 10_000), rate=st.floats(0.3, 3.0),
+       down_share=st.floats(0.3, 1.0), up_share=st.floats(0.0, 1.0))
+def test_with_an_exact_cost_model_it_never_exceeds_the_target(n, seed, rate, down_share, up_share):
+    world = World(n, seed, down_share=down_share, up_share=up_share)
+    coarsest = world.model_seconds(world.level - world.has_down)
+    if rate * coarsest > TARGET:  # not even the coarsest levels fit: nothing to hold
+        rate = 0.9 * TARGET / coarsest
+    gov = Governor(TARGET, ramp=0.1)
+    gov.take(world.ladder())
+    run = frames(world, gov, lambda i: rate, 40)
+    settle = 1 + int(np.ceil(gov.ramp / DT))  # one frame to learn the machine, one ramp to get there
+    spent = np.array([s for _, s, _ in run])
+    assert np.all(spent[settle:] <= TARGET * (1 + 1e-9)), spent.max()
+    # ... and it is not idle when time is left: the time spent is within the band below its aim,
+    # or the finest levels on offer are all drawn.
+    finest = world.model_seconds(world.level + world.has_up)
+    aim = (1 - gov.slack) * gov.aim * TARGET
+    assert spent[-1] >= min(aim, rate * finest) - 1e-3 * TARGET - rate * world.up.max()
+
+
+def test_a_twice_slower_machine_is_absorbed_within_three_frames():
+    world = World(400, 7)
+    base_rate = 0.7 * TARGET / world.base
+    gov = Governor(TARGET, ramp=0.1)
+    gov.take(world.ladder())
+    slow_at = 30
+    run = frames(world, gov, lambda i: base_rate * (2.0 if i >= slow_at else 1.0), 60)
+    spent = np.array([s for _, s, _ in run])
+    assert np.all(spent[slow_at - 10:slow_at] <= TARGET)  # held before the step change
+    assert spent[slow_at] > TARGET  # the step change is real: the first slow frame misses
+    assert np.all(spent[slow_at + 3:] <= TARGET), spent[slow_at:slow_at + 6] / TARGET  # within 3 frames
+    # And when the machine is fast again, the detail comes back.
+    gov2 = Governor(TARGET, ramp=0.1)
+    gov2.take(world.ladder())
+    run2 = frames(world, gov2, lambda i: base_rate * (2.0 if i < slow_at else 1.0), 60)
+    detail = [world.model_seconds(level) for level, _, _ in run2]
+    assert np.mean(detail[-10:]) > 1.3 * np.mean(detail[slow_at - 10:slow_at])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), rates=st.lists(st.floats(0.2, 4.0), min_size=3, max_size=8))
+def test_no_level_jumps_between_frames_and_only_ladder_steps_are_drawn(seed, rates):
+    """Whatever the machine does and however the ladder changes, each object's level moves at most one level
+    per ramp, and only to the levels its steps name (what the client holds: the selected level and the
+    resident neighbours the ladder offers)."""
+    n = 120
+    worlds = [World(n, seed + k) for k in range(3)]
+    gov = Governor(TARGET, ramp=0.1)
+    for k, w in enumerate(worlds):
+        gov.take(w.ladder(t0=k * 0.5))
+    prev = None
+    rate0 = TARGET / worlds[0].base
+    for i in range(60):
+        t = i * DT
+        w = worlds[min(int(t / 0.5), 2)]
+        level = gov.apply(t, w.key, w.level)
+        lo = w.level - np.where(w.has_down, 1.0, 0.0)
+        hi = w.level + np.where(w.has_up, 1.0, 0.0)
+        # A key whose step left the ladder may still be ramping back: never beyond one level either way.
+        assert np.all(level >= w.level - 1 - 1e-9) and np.all(level <= w.level + 1 + 1e-9)
+        assert np.all((level >= lo - 1e-9) | (level > prev - 1e-9 if prev is not None else False))
+        if prev is not None:
+            assert np.all(np.abs(level - prev) <= 2 * DT / gov.ramp + 1e-9)  # two levels at most per ramp
+        drawn = np.ceil(level - 1e-9)
+        steady = (drawn == w.level) | ((drawn == w.level - 1) & w.has_down) | ((drawn == w.level + 1) & w.has_up)
+        assert np.all(steady | (np.abs(level - np.round(level)) > 1e-9) | (prev is not None)), level
+        prev = level
+        gov.observe(rates[i % len(rates)] * rate0 * w.model_seconds(hi))
+
+
+def test_without_a_ladder_or_a_measurement_the_plan_is_drawn():
+    world = World(50, 3)
+    gov = Governor(TARGET)
+    assert np.array_equal(gov.apply(0.0, world.key, world.level), world.level)
+    gov.take(world.ladder(t0=1.0))
+    assert np.array_equal(gov.apply(0.5, world.key, world.level), world.level)  # not governing before t0
+    assert np.array_equal(gov.apply(1.0, world.key, world.level), world.level)  # no frame measured yet
+    # A delta without steps after one with them: every key ramps back to its planned level.
+    gov.observe(TARGET)
+    for i in range(3):
+        gov.apply(1.05 + i * DT, world.key, world.level)
+    gov.take(GovernorLadder.build(1.2, [], [], [], [], world.base))
+    for i in range(6):
+        level = gov.apply(1.2 + i * DT, world.key, world.level)
+    assert np.array_equal(level, world.level)
+    with pytest.raises(ValueError):
+        Governor(TARGET, ramp=0.5)  # a change must take no more than a quarter second
+
+
+def test_a_frame_at_ten_thousand_representations_takes_under_two_milliseconds():
+    world = World(10_000, 11)
+    gov = Governor(TARGET)
+    gov.take(world.ladder())
+    rate = TARGET / world.base
+    for i in range(5):
+        gov.observe(rate * world.model_seconds(gov.apply(i * DT, world.key, world.level)))
+    took = []
+    for i in range(5, 40):
+        r = rate * (1.6 if i % 7 == 0 else 1.0)  # a heavy frame now and then: the governor moves
+        t0 = time.perf_counter()
+        level = gov.apply(i * DT, world.key, world.level)
+        took.append(time.perf_counter() - t0)
+        gov.observe(r * world.model_seconds(level))
+    assert np.median(took) < 2e-3, np.median(took)

@@ -1,0 +1,56 @@
+"""The governor's ladder as real selections build it: a simulated client on a simulated link (``test_pipeline``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from proto.messages import Delta
+
+from .test_pipeline import Link, scenes  # noqa: F401  (the fixture)
+
+
+def test_each_delta_carries_a_ladder_over_what_the_client_holds(scenes):  # noqa: F811
+    link = Link(scenes, one_way=0.03, budget=0.004, governor=True)
+    index = link.index
+    link.run(6.0)
+    deltas = [d for _, d in link.deltas]
+    assert len(deltas) >= 6
+    held = set()
+    ups = downs = 0
+    for d in deltas:
+        held |= {a.rep for a in d.add}
+        held -= set(d.drop)
+        rep, to = np.asarray(d.ladder_rep, np.int64), np.asarray(d.ladder_to, np.int64)
+        assert set(rep.tolist()) <= set(d.selection)
+        assert np.all(np.abs(to - rep) == 1) and np.all(index.rep_object[to] == index.rep_object[rep])
+        assert set(to.tolist()) <= held  # a step only goes where the client holds the level
+        assert np.all(np.diff(d.ladder_value) >= 0) and np.all(np.asarray(d.ladder_cost) > 0)
+        assert d.ladder_base > 0
+        ups += int((to > rep).sum())
+        downs += int((to < rep).sum())
+    assert downs > 0 and ups > 0  # coarser levels held, finer ones sent ahead with the bytes left over
+
+
+def test_without_the_governor_no_ladder_is_sent(scenes):  # noqa: F811
+    link = Link(scenes, one_way=0.03, budget=0.004)
+    link.run(3.0)
+    assert link.deltas and all(not d.ladder_rep and d.ladder_base == 0 for _, d in link.deltas)
+
+
+@pytest.mark.parametrize("bad", [
+    dict(ladder_rep=[1], ladder_to=[2, 3], ladder_cost=[1e-4], ladder_value=[1.0]),  # columns differ
+    dict(ladder_rep=[1], ladder_to=[3], ladder_cost=[1e-4], ladder_value=[1.0]),  # not adjacent
+    dict(ladder_rep=[5], ladder_to=[4], ladder_cost=[1e-4], ladder_value=[1.0]),  # not selected
+    dict(ladder_rep=[1, 2], ladder_to=[0, 3], ladder_cost=[1e-4, 1e-4], ladder_value=[2.0, 1.0]),  # unordered
+    dict(ladder_rep=[1], ladder_to=[0], ladder_cost=[float("nan")], ladder_value=[1.0]),  # not finite
+    dict(ladder_rep=[1], ladder_to=[0], ladder_cost=[0.0], ladder_value=[1.0]),  # a step costs something
+    dict(ladder_rep=[1], ladder_to=[0], ladder_cost=[1e-4], ladder_value=[float("inf")]),
+    dict(ladder_base=-1.0),
+])
+def test_the_protocol_refuses_a_malformed_ladder(bad):
+    with pytest.raises(ValidationError):
+        Delta(seq=1, t0=0.0, t1=0.5, selection=[1, 2], **bad)
+    Delta(seq=1, t0=0.0, t1=0.5, selection=[1, 2], ladder_rep=[1, 2], ladder_to=[0, 3], ladder_cost=[1e-4, 2e-4],
+          ladder_value=[1.0, 2.0], ladder_base=0.01)
