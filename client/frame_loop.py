@@ -267,6 +267,8 @@ class FrameLoop:
             ok[np.nonzero(morph)[0][~has]] = False
         ok |= ~changed
         self.governor_refused = int((~ok).sum())
+        if self.governor_refused:
+            gov.hold(d.key[~ok], np.zeros(self.governor_refused))
         return Drawn(d.key, np.where(ok, level, d.level), np.where(ok, rep, d.rep), np.where(ok, weight, d.weight))
 
     def drawn(self, t: float):

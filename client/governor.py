@@ -253,4 +253,16 @@ class Governor:
         # where its ramp lies outside them: a bound that moves with the level, so nothing jumps.
         lo = np.minimum(level, np.where(hit, self.lo[pos_c], -np.inf))
         hi = np.maximum(level, np.where(hit, self.hi[pos_c], np.inf))
-        return np.maximum(np.clip(level + np.where(hit, self.g[pos_c], 0.0), lo, hi), 0.0)
+        drawn = np.maximum(np.clip(level + np.where(hit, self.g[pos_c], 0.0), lo, hi), 0.0)
+        # The offset is what was drawn, not what the bound cut off: a bound that widens later (a new ladder
+        # reaching a level further down) then starts a ramp from here instead of showing the rest at once.
+        self.g[pos_c[hit]] = drawn[hit] - level[hit]
+        return drawn
+
+    def hold(self, key: np.ndarray, offset: np.ndarray) -> None:
+        """The rows of ``key`` were drawn at ``offset`` from the plan instead (what the caller could draw):
+        their ramps go on from there."""
+        pos = np.searchsorted(self.gkey, np.asarray(key, np.int64))
+        pos_c = np.minimum(pos, max(self.gkey.size - 1, 0))
+        hit = (pos < self.gkey.size) & (self.gkey[pos_c] == key) if self.gkey.size else np.zeros(pos.size, bool)
+        self.g[pos_c[hit]] = np.asarray(offset, np.float64)[hit]

@@ -163,3 +163,23 @@ def test_a_frame_at_ten_thousand_representations_takes_under_two_milliseconds():
         took.append(time.perf_counter() - t0)
         gov.observe(r * world.model_seconds(level))
     assert np.median(took) < 2e-3, np.median(took)
+
+
+def test_a_bound_that_widens_starts_a_ramp_instead_of_a_jump():
+    """A step down the bound cut off (the plan's level already at the ladder's lowest) is not drawn at once when a
+    later ladder reaches further down: the drawn offset ramps from where it was drawn."""
+    key = np.array([10], np.int64)
+    gov = Governor(TARGET, ramp=0.1)
+    # The plan is at level 3; the first ladder's step down reaches level 3 only (its selected level is 4).
+    gov.take(GovernorLadder.build(0.0, key, np.array([-1]), np.array([1e-3]), np.array([1.0]), 2e-3, np.array([4.0])))
+    gov.apply(0.0, key, np.array([3.0]))
+    gov.observe(10 * TARGET)  # far over: the step down is taken, but the bound holds the drawn level at 3
+    held = [gov.apply(DT * i, key, np.array([3.0]))[0] for i in range(1, 5)]
+    assert held == [3.0] * 4
+    # A new ladder selected at level 3 reaches level 2: the level must glide there, not fall a whole level.
+    gov.take(GovernorLadder.build(5 * DT, key, np.array([-1]), np.array([1e-3]), np.array([1.0]), 2e-3,
+                                  np.array([3.0])))
+    drawn = [gov.apply(5 * DT + 0.01 * i, key, np.array([3.0]))[0] for i in range(0, 15)]
+    times = [4 * DT] + [5 * DT + 0.01 * i for i in range(0, 15)]
+    assert np.all(np.abs(np.diff([held[-1]] + drawn)) <= np.diff(times) / 0.1 + 1e-9)
+    assert drawn[-1] == pytest.approx(2.0)
