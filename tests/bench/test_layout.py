@@ -69,4 +69,4 @@ def test_the_root_app_has_every_command_in_order():
 
     root = get_command(app)
     assert list(root.commands) == ["build", "inspect", "serve", "client", "demo", "loadtest", "eval", "bench"]
-    assert list(root.commands["bench"].commands) == ["build", "select", "predict", "render", "encoding"]
+    assert list(root.commands["bench"].commands) == ["build", "select", "predict", "render", "benefit", "encoding", "hostile"]
