@@ -102,7 +102,8 @@ def _fidelity(idx, fid: dict, reps: np.ndarray, level: np.ndarray, by_depth: boo
     """Measured shape of the coarse representations of one kind: per level, and the worst by name."""
     bounds = Bounds()
     pos = np.searchsorted(fid["rep"], reps)
-    has = (pos < fid["rep"].size) & (fid["rep"][np.minimum(pos, fid["rep"].size - 1)] == reps)
+    n = fid["rep"].size
+    has = (pos < n) & (fid["rep"][np.minimum(pos, max(n - 1, 0))] == reps) if n else np.zeros(reps.size, bool)
     full = idx.rep_first[idx.rep_object[reps]] + idx.rep_count[idx.rep_object[reps]] - 1
     coarse = has & ((reps != full) | by_depth)
     rows = pos[coarse]
