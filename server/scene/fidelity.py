@@ -30,13 +30,13 @@ directional light).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 
 __all__ = ["Bounds", "Fidelity", "Reference", "reference", "measure", "surface_area", "is_closed",
-           "silhouettes", "shaded", "MASK"]
+           "silhouettes", "silhouette_iou", "shaded", "MASK"]
 
 MASK = 64  #: silhouette mask side, pixels
 PIXEL_ERROR = 1.0  #: projected geometric error at the switching distance, pixels
@@ -89,6 +89,13 @@ class Reference:
     area: float
     closed: bool
     masks: np.ndarray  # (3, MASK, MASK) bool
+    renders: dict = field(default_factory=dict)  # FLIP render side → the finest level's shaded render
+
+    def shaded(self, size: int) -> np.ndarray:
+        """The finest level's FLIP render at ``size`` pixels, made once per size."""
+        if size not in self.renders:
+            self.renders[size] = shaded(self.positions, self.faces, self.lo, self.hi, size)
+        return self.renders[size]
 
 
 # --------------------------------------------------------------------------- kernels
@@ -124,6 +131,43 @@ def _raster(tri: np.ndarray, shade: np.ndarray, h: int, w: int, image: np.ndarra
                     image[j, i] = shade[t]
 
 
+@numba.njit(cache=True, nogil=True)
+def _cover(uv: np.ndarray, faces: np.ndarray, res: int, out: np.ndarray) -> None:
+    """Coverage of the triangles (vertices ``uv`` in pixel units, n × 3) along x, y and z into out (3, res, res).
+
+    The same inside test as ``_raster``: a pixel is covered when its centre lies in a triangle of
+    non-zero area (closed edges). Coverage needs no depth, so one pass per axis over the faces.
+    """
+    for axis in range(3):
+        ka = 1 if axis == 0 else 0
+        kb = 1 if axis == 2 else 2
+        for t in range(faces.shape[0]):
+            v0, v1, v2 = faces[t, 0], faces[t, 1], faces[t, 2]
+            x0, y0 = uv[v0, ka], uv[v0, kb]
+            x1, y1 = uv[v1, ka], uv[v1, kb]
+            x2, y2 = uv[v2, ka], uv[v2, kb]
+            area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+            if area == 0.0:
+                continue
+            i0 = max(int(math.floor(min(x0, x1, x2))), 0)
+            i1 = min(int(math.ceil(max(x0, x1, x2))), res - 1)
+            j0 = max(int(math.floor(min(y0, y1, y2))), 0)
+            j1 = min(int(math.ceil(max(y0, y1, y2))), res - 1)
+            inv = 1.0 / area
+            for j in range(j0, j1 + 1):
+                py = j + 0.5
+                for i in range(i0, i1 + 1):
+                    if out[axis, j, i]:
+                        continue
+                    px = i + 0.5
+                    a = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) * inv
+                    b = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) * inv
+                    c = 1.0 - a - b
+                    if a < 0.0 or b < 0.0 or c < 0.0:
+                        continue
+                    out[axis, j, i] = True
+
+
 def _draw(tri: np.ndarray, shade: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     image = np.full((h, w), -1.0)
     depth = np.full((h, w), -np.inf)
@@ -144,24 +188,21 @@ def is_closed(faces: np.ndarray) -> bool:
     f = np.asarray(faces, np.int64).reshape(-1, 3)
     if f.shape[0] == 0:
         return False
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(e, axis=0, return_counts=True)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    lo, hi = e.min(axis=1), e.max(axis=1)
+    key = np.sort(lo * (int(hi.max()) + 1) + hi)  # one integer per undirected edge
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    counts = np.diff(np.r_[starts, key.size])
     return bool((counts % 2 == 0).all())
 
 
 def silhouettes(positions: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                 res: int = MASK) -> np.ndarray:
     """(3, res, res) bool coverage masks along x, y and z, each filling the box lo..hi's face."""
-    tri = np.asarray(positions, np.float64)[np.asarray(faces, np.int64)]
     ext = np.maximum(np.asarray(hi) - np.asarray(lo), 1e-9)
-    uv = (tri - lo) / ext * res
+    uv = np.ascontiguousarray((np.asarray(positions, np.float64) - lo) / ext * res)
     out = np.zeros((3, res, res), bool)
-    shade = np.ones(tri.shape[0])
-    for axis in range(3):
-        a, b = [k for k in range(3) if k != axis]
-        t = np.stack([uv[..., a], uv[..., b], uv[..., axis]], axis=-1)
-        image, _ = _draw(t, shade, res, res)
-        out[axis] = image > 0
+    _cover(uv, np.ascontiguousarray(faces, np.int64), res, out)
     return out
 
 
@@ -189,8 +230,10 @@ def shaded(positions: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndar
     q = (p - centre) @ basis.T  # right, up, toward the camera
     px = np.stack([(q[:, 0] / radius + 1) * size / 2, (1 - q[:, 1] / radius) * size / 2, q[:, 2]], axis=1)
     tri = p[f]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    u, v = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    n = np.column_stack([u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1], u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
+                         u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]])  # the cross product, without np.cross's overhead
+    n /= np.maximum(np.sqrt((n * n).sum(axis=1, keepdims=True)), 1e-30)
     light = _LIGHT / np.linalg.norm(_LIGHT)
     shade = 0.15 + 0.75 * np.abs(n @ light)
     image, _ = _draw(px[f], shade, size, size)
@@ -239,7 +282,7 @@ def flip_error(ref: Reference, positions: np.ndarray, faces: np.ndarray, error: 
     if not error > 0:
         return float("nan")
     size = switching_size(ref.lo, ref.hi, error)
-    a = shaded(ref.positions, ref.faces, ref.lo, ref.hi, size)
+    a = ref.shaded(size)
     b = shaded(positions, faces, ref.lo, ref.hi, size)
     with _flip_threads():
         _, mean, _ = flip_evaluator.evaluate(a, b, "LDR", applyMagma=False)
@@ -255,10 +298,15 @@ def reference(positions: np.ndarray, faces: np.ndarray) -> Reference:
     return Reference(p, f, lo, hi, surface_area(p, f), is_closed(f), silhouettes(p, f, lo, hi))
 
 
+def silhouette_iou(ref: Reference, positions: np.ndarray, faces: np.ndarray) -> float:
+    """Least silhouette IoU over the six axis directions of the level against ``ref``."""
+    return _iou(ref.masks, silhouettes(positions, faces, ref.lo, ref.hi))
+
+
 def measure(ref: Reference, positions: np.ndarray, faces: np.ndarray, error: float,
             method: str = "source", with_flip: bool = True) -> Fidelity:
     """The level's area ratio, least silhouette IoU over the six directions and FLIP vs ``ref``."""
     area = surface_area(positions, faces)
-    iou = _iou(ref.masks, silhouettes(positions, faces, ref.lo, ref.hi))
+    iou = silhouette_iou(ref, positions, faces)
     flip = flip_error(ref, positions, faces, error) if with_flip else float("nan")
     return Fidelity(area / max(ref.area, 1e-30), iou, flip, method)

@@ -33,7 +33,7 @@ from typing import Sequence
 import numpy as np
 
 from . import blocks
-from .fidelity import Bounds, Fidelity, flip_error, measure, reference
+from .fidelity import Bounds, Fidelity, flip_error, reference, silhouette_iou, surface_area
 from .lod import Chain, _prepare, _simplify_step, geometric_error, nearest_vertex_map
 
 __all__ = ["ShapedChain", "shaped_chain", "shaped_source_chain", "LADDER"]
@@ -65,13 +65,23 @@ def _proxy(method: str, fine: tuple[np.ndarray, np.ndarray]):
         return None
 
 
-def _measured(ref, level, err: float, method: str, bounds: Bounds) -> tuple[bool, Fidelity]:
-    """Area and silhouette first; the FLIP render only for a level that passes them."""
-    fid = measure(ref, level[0], level[1], err, method, with_flip=False)
+def _measured(ref, level, error, method: str, bounds: Bounds) -> tuple[bool, Fidelity, float]:
+    """Cheapest measure first: area (closed meshes), then the silhouettes, then FLIP.
+
+    ``error`` gives the level's switching error; it is called only for a level whose area and
+    silhouette pass (only those are rendered for FLIP or can be kept). Returns (passes, measures,
+    raw error — NaN when not needed).
+    """
+    area = surface_area(level[0], level[1]) / max(ref.area, 1e-30)
+    fid = Fidelity(area, float("nan"), float("nan"), method)
+    if ref.closed and not min(area, 1.0 / max(area, 1e-12)) >= bounds.area:
+        return False, fid, float("nan")
+    fid = Fidelity(area, silhouette_iou(ref, level[0], level[1]), float("nan"), method)
     if not bounds.passes(fid, ref.closed):
-        return False, fid
-    fid = Fidelity(fid.area_ratio, fid.iou, flip_error(ref, level[0], level[1], err), method)
-    return bounds.passes(fid, ref.closed), fid
+        return False, fid, float("nan")
+    raw, err = error()
+    fid = Fidelity(area, fid.iou, flip_error(ref, level[0], level[1], err), method)
+    return bounds.passes(fid, ref.closed), fid, raw
 
 
 def shaped_chain(positions: np.ndarray, faces: np.ndarray, *, building: bool, bounds: Bounds = Bounds(),
@@ -113,8 +123,11 @@ def shaped_chain(positions: np.ndarray, faces: np.ndarray, *, building: bool, bo
                 if level is None or level[1].shape[0] > limit:
                     continue
             if method == "decimate" or method not in measured:
-                raw = geometric_error(fine[0], level[0], level[1], samples)
-                ok, fid = _measured(ref, level, max(raw, errors[-1]), method, bounds)
+                def error(level=level):
+                    raw = geometric_error(fine[0], level[0], level[1], samples)
+                    return raw, max(raw, errors[-1])
+
+                ok, fid, raw = _measured(ref, level, error, method, bounds)
                 if method != "decimate":  # a proxy is the same mesh at every step: measure it once
                     measured[method] = (raw, ok, fid)
             else:
@@ -167,8 +180,11 @@ def shaped_source_chain(levels: Sequence[tuple[np.ndarray, np.ndarray]], *, buil
         for method, level in candidates:
             if level is None or level[1].shape[0] >= kept[-1][1].shape[0]:
                 continue
-            err = max(geometric_error(fine[0], level[0], level[1], samples), errors[-1])
-            ok, fid = _measured(ref, level, err, method, bounds)
+            def error(level=level):
+                err = max(geometric_error(fine[0], level[0], level[1], samples), errors[-1])
+                return err, err
+
+            ok, fid, err = _measured(ref, level, error, method, bounds)
             if ok:
                 chosen = (level, fid, err)
                 regenerated += method != "source"

@@ -118,3 +118,29 @@ def test_megacity_block_has_walls_at_street_level(tmp_path) -> None:
     walls = (detail >= 0) & (detail < 0.3)  # faces within ~17° of vertical
     assert walls.sum() > 1000
     assert (cut[walls] >= 0).mean() >= 0.9
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 40))
+def test_coverage_masks_match_the_z_buffer_rasteriser(seed, n) -> None:
+    """The silhouettes' coverage kernel covers exactly the pixels the shading rasteriser draws."""
+    from server.scene.fidelity import silhouettes
+
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-5, 5, (3 * n, 3))
+    f = rng.permutation(3 * n).reshape(n, 3)
+    lo, hi = p.min(axis=0) - 0.1, p.max(axis=0) + 0.1
+    uv = (p[f] - lo) / (hi - lo) * 32
+    masks = silhouettes(p, f, lo, hi, res=32)
+    for axis in range(3):
+        a, b = [k for k in range(3) if k != axis]
+        image, _ = _draw(np.stack([uv[..., a], uv[..., b], uv[..., axis]], axis=-1), np.ones(n), 32, 32)
+        assert np.array_equal(masks[axis], image > 0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.floats(1, 30), st.floats(1, 30), st.floats(1, 30), st.integers(0, 11))
+def test_is_closed_sees_a_missing_face(w, d, h, drop) -> None:
+    m = trimesh.creation.box((w, d, h))
+    assert is_closed(m.faces)
+    assert not is_closed(np.delete(m.faces, drop, axis=0))
