@@ -126,10 +126,20 @@ class Governor:
     (± slack × aim), so noise does not make it chatter.
     """
 
-    def __init__(self, target: float, ramp: float = RAMP, aim: float = 0.97, slack: float = 0.03) -> None:
-        if not (target > 0 and 0 < ramp <= 0.25 and 0 < aim <= 1 and 0 <= slack < 1 and aim * (1 + slack) <= 1):
-            raise ValueError(f"bad governor settings target={target} ramp={ramp} aim={aim} slack={slack}")
+    def __init__(self, target: float, ramp: float = RAMP, aim: float = 0.97, slack: float = 0.03,
+                 tail: float = 1.05, window: int = 32) -> None:
+        if not (target > 0 and 0 < ramp <= 0.25 and 0 < aim <= 1 and 0 <= slack < 1 and aim * (1 + slack) <= 1
+                and 1.0 <= tail <= 1.5 and window >= 8):
+            raise ValueError(f"bad governor settings target={target} ramp={ramp} aim={aim} slack={slack} "
+                             f"tail={tail} window={window}")
         self.target, self.ramp, self.aim, self.slack = float(target), float(ramp), float(aim), float(slack)
+        # The aim follows the predictor's measured error: measured ÷ predicted time of the last ``window``
+        # frames; steering to tail ÷ their 95th percentile keeps the 95th-percentile frame near tail × target
+        # on a machine whose frames scatter, and to ``aim`` where they do not.
+        self.tail = float(tail)
+        self.ratios = np.full(int(window), np.nan)
+        self.seen = 0
+        self.rates = np.zeros(0)
         self.pending: list[GovernorLadder] = []
         self.ladder: GovernorLadder | None = None
         self.m = 0
@@ -156,7 +166,21 @@ class Governor:
     def observe(self, time: float) -> None:
         """The measured time of the frame the last ``apply`` drew."""
         if self.units > 0 and time > 0 and np.isfinite(time):
-            self.rate = float(time) / self.units
+            if self.predicted > 0:
+                self.ratios[self.seen % self.ratios.size] = float(time) / self.predicted
+                self.seen += 1
+            # The predictor: the median of the last three frames' time per unit drawn — one slow frame alone
+            # does not move it, two in a row do (a machine that slowed is followed within three frames).
+            self.rates = np.concatenate([self.rates[-2:], [float(time) / self.units]])
+            self.rate = float(np.median(self.rates))
+
+    @property
+    def steer(self) -> float:
+        """The share of the target the predicted frame is steered to now."""
+        if self.seen < 8:
+            return self.aim
+        q = float(np.nanquantile(self.ratios, 0.95))
+        return float(np.clip(self.tail / max(q, 1e-9), 0.5, self.aim))
 
     # ------------------------------------------------------------------ per frame
 
@@ -188,10 +212,11 @@ class Governor:
         cap = self.target / self.rate  # model seconds that fit in the target
         cum, m = lad.cum, min(self.m, lad.cum.size - 1)
         now = lad.fixed + cum[m]
-        fit = int(max(np.searchsorted(cum, self.aim * cap - lad.fixed, side="right") - 1, 0))
-        if now > (1.0 + self.slack) * self.aim * cap:
+        aim = self.steer
+        fit = int(max(np.searchsorted(cum, aim * cap - lad.fixed, side="right") - 1, 0))
+        if now > (1.0 + self.slack) * aim * cap:
             return fit
-        if now < (1.0 - self.slack) * self.aim * cap and not ramping_down:
+        if now < (1.0 - self.slack) * aim * cap and not ramping_down:
             return max(fit, m)
         return m
 
