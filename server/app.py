@@ -77,6 +77,7 @@ class _Connection:
         self.last_save = -1e18
         self.opened = now
         self.send_since: float | None = None  # when the pending send began (None: not sending)
+        self.slot = False  # a hello within the session limit is being opened: it holds a slot meanwhile
         self.resumed = False
         self.refused_resume: str | None = None  # the scene of a session this connection could not resume into
         self.gone = False  # the reader saw the socket end but could not queue that
@@ -129,9 +130,8 @@ def create_app(
     metrics = Metrics(lambda: len(conns))
     admission = Admission(limits)
 
-    def n_sessions() -> int:
-        """Connections that said their hello: the ones holding a session slot."""
-        return sum(1 for c in conns.values() if c.session.state is not SessionState.AWAIT_HELLO)
+    def n_sessions() -> int:  # connections that said their hello: the ones holding a session slot
+        return sum(1 for c in conns.values() if c.slot or c.session.state is not SessionState.AWAIT_HELLO)
     pool = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="walkstream-select")
     # Selections, fairly: a session that spends more CPU than its neighbours waits behind them.
     fair = FairPool(limits.workers, name="walkstream-fair")
@@ -413,18 +413,26 @@ def create_app(
                     conn.request_close("busy", CLOSE_BUSY, f"this replica serves its maximum of "
                                        f"{limits.max_sessions} sessions; try another or later")
                     return []
-                if message.solver in MEASUREMENT_SOLVERS and not limits.allow_measurement_solvers:
-                    return [_error("solver_refused", f"solver {message.solver!r} is for measurement only; this "
-                                   "replica offers it to clients only when started with --allow-measurement-solvers")]
-                outcome = "fresh" if message.resume is None else await resume(conn, message.resume, message.scene)
-                metrics.resumes.labels(outcome).inc()
-                if outcome == "other_scene":
-                    return [_error("bad_state", f"session {message.resume.session} is of scene "
-                                   f"{conn.refused_resume!r}, not {message.scene!r}: resume it with scene "
-                                   f"{conn.refused_resume!r} (its state is kept), or say hello without resume")]
-                # A hello builds the session's scene tables: off the loop.
-                return await loop.run_in_executor(pool, conn.session.receive, message, t)
+                conn.slot = True  # taken before the first await: hellos that come together cannot all pass
+                try:
+                    return await opened(message, t)
+                finally:  # from here the session's own state holds the slot, or the hello failed
+                    conn.slot = False
             return conn.session.receive(message, t)
+
+        async def opened(message: Hello, t: float) -> list[BaseModel]:
+            """A hello within the session limit: refused, resumed or fresh."""
+            if message.solver in MEASUREMENT_SOLVERS and not limits.allow_measurement_solvers:
+                return [_error("solver_refused", f"solver {message.solver!r} is for measurement only; this "
+                               "replica offers it to clients only when started with --allow-measurement-solvers")]
+            outcome = "fresh" if message.resume is None else await resume(conn, message.resume, message.scene)
+            metrics.resumes.labels(outcome).inc()
+            if outcome == "other_scene":
+                return [_error("bad_state", f"session {message.resume.session} is of scene "
+                               f"{conn.refused_resume!r}, not {message.scene!r}: resume it with scene "
+                               f"{conn.refused_resume!r} (its state is kept), or say hello without resume")]
+            # A hello builds the session's scene tables: off the loop.
+            return await loop.run_in_executor(pool, conn.session.receive, message, t)
 
         read_task = asyncio.create_task(reader())
         try:
