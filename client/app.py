@@ -66,7 +66,7 @@ def run_client(
     reconnect_timeout: float = 10.0,
     silence_timeout: float | None = 10.0,
     tour: "Sequence[dict] | None" = None,
-    governor: bool = True,
+    governor: bool = False,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 

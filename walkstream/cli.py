@@ -46,6 +46,8 @@ def client(
     navigate: Literal["tour", "fly", "walk"] = typer.Option(
         "tour", help="who moves the camera: the scene's tour, or you flying or walking (needs --window)"),
     false_colour: bool = typer.Option(False, "--false-colour", help="draw each object in a false colour"),
+    governor: bool = typer.Option(False, "--governor/--no-governor",
+                                  help="correct the server's selection every frame along each delta's ladder"),
     reconnect_timeout: float = typer.Option(10.0, min=0.0, help="seconds to keep redialling a lost connection "
                                             "(resuming the session, nothing re-sent); 0: a loss ends the run"),
 ) -> None:
@@ -67,7 +69,7 @@ def client(
         run = run_client(
             url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3,
             screenshot=screenshot, solver=solver, predict=predict, morph=morph, window=window, navigate=navigate,
-            false_colour=false_colour, reconnect_timeout=reconnect_timeout,
+            false_colour=false_colour, reconnect_timeout=reconnect_timeout, governor=governor,
         )
     except (WindowError, ClientError) as exc:
         typer.echo(f"error: {exc}", err=True)

@@ -56,6 +56,8 @@ class Context:
     scene: str
     target_ms: float = 50.0
     method: str = "predictive"
+    #: The client corrects every frame along the delta's ladder (``client.governor``).
+    governor: bool = True
     viewport: tuple[int, int] = (640, 360)
     tau: float = 0.5
     seed: int = 0
@@ -113,7 +115,8 @@ class Context:
         solver, predict, morph = m.solver, m.predict, m.morph
         return run_client(url or self.url, self.scene, duration=duration, viewport=self.viewport, fov_y=self.fov_y,
                           target_frame_time=(target_ms or self.target_ms) / 1e3, solver=solver, predict=predict,
-                          morph=morph, trace=trace, tour=keys, max_fps=MAX_FPS, timeout=30.0, on_frame=on_frame)
+                          morph=morph, trace=trace, tour=keys, max_fps=MAX_FPS, timeout=30.0, on_frame=on_frame,
+                          governor=self.governor)
 
 
 def _result(name: str, passed: bool, text: str, figures: dict) -> dict:

@@ -133,7 +133,8 @@ def test_abrupt_disconnects_leave_the_server_serving(server, demo_store):
 
 def test_prediction_and_morphing_run_end_to_end_without_popping(server):
     """The real client on the tour with prediction and geomorphing: levels only ever glide."""
-    run = run_client(server.url, "demo", duration=8.0, viewport=(320, 180), target_frame_time=0.004, trace=True)
+    run = run_client(server.url, "demo", duration=8.0, viewport=(320, 180), target_frame_time=0.004, trace=True,
+                     governor=True)
     assert run.errors == [] and run.rejected == [] and run.close_reason is None
     assert run.welcome.predict and run.welcome.morph and run.pings >= 3
     assert run.deltas_received >= 6 and run.late == 0  # every schedule arrived before its window opened
