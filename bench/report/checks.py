@@ -318,5 +318,7 @@ def _governor_checks(gov: dict | None, opt: dict | None, gov_bound: dict | None,
                      f"optimization+gov share of frames over {MAX_RATIO_LIMIT:.2f} × target", "share not measured"),
         _limit_check(names[3], flip_ratio, GOVERNOR_FLIP_LIMIT, False,
                      f"optimization+gov FLIP {flip or 0:.4f} ÷ optimization's {base or 0:.4f}",
+                     "optimization without the governor drew the full-detail picture (FLIP 0): no ratio"
+                     if base is not None and base <= 0 else
                      "FLIP not measured for optimization with and without the governor"),
     ]

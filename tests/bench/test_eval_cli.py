@@ -27,7 +27,10 @@ def test_eval_writes_a_report_from_real_runs(demo_store, tmp_path) -> None:
     assert names >= {"opt_std_vs_static", "opt_max", "opt_pareto", "governor_mean_bound", "governor_p99",
                      "governor_over", "governor_flip_ratio", "opt_std_bound_vs_static", "opt_std_bound_vs_feedback"}
     gov = {c["name"]: c for c in figures["checks"] if c["name"].startswith("governor_")}
-    assert gov["governor_p99"]["passed"] is not None and gov["governor_flip_ratio"]["passed"] is not None
+    assert gov["governor_p99"]["passed"] is not None
+    # The ratio needs a picture to improve on: a short run may find Optimization already at full detail.
+    flip = gov["governor_flip_ratio"]
+    assert flip["passed"] is not None or "full-detail picture (FLIP 0)" in flip["skipped"]
     assert [s["name"] for s in figures["scenarios"]] == ["below_coarsest"]
     assert figures["scenarios"][0]["line"].split()[0] in ("PASS", "FAIL")
     results = json.loads((out / "results.json").read_text())
