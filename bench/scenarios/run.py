@@ -56,8 +56,10 @@ class Context:
     scene: str
     target_ms: float = 50.0
     method: str = "predictive"
-    #: The client corrects every frame along the delta's ladder (``client.governor``).
-    governor: bool = True
+    #: The client corrects every frame along the delta's ladder (``client.governor``). Off, as a client runs by
+    #: default: the governor ramps a level in ``client.governor.RAMP`` (0.1 s), faster than the morph rate
+    #: ``level_jumps`` holds the schedule to, so its steps would count as jumps.
+    governor: bool = False
     viewport: tuple[int, int] = (640, 360)
     tau: float = 0.5
     seed: int = 0
