@@ -1,7 +1,8 @@
 """The FastAPI service: ``/ws`` moves bytes between a websocket and a ``Session``.
 
 The handler owns the clock and the socket and nothing else. A reader task
-stamps, counts and rate-limits incoming frames and queues them; the session
+(``server.connection``) stamps, counts and rate-limits incoming frames and
+queues them, bounded in bytes; the session
 loop waits for a frame, the session's next deadline or the idle timeout,
 whichever comes first, and sends what the session returns. Selections (and the
 encoding of their deltas) run in the app's own thread pool, so one session's
@@ -28,13 +29,14 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Callable, Mapping
 
-from fastapi import Depends, FastAPI, HTTPException, Request, Response, WebSocket, WebSocketDisconnect
+from fastapi import Depends, FastAPI, HTTPException, Request, Response, WebSocket
 from pydantic import BaseModel
 
 from proto.codec import decode_client, encode
-from proto.errors import ERROR_CODES, ProtocolError
+from proto.errors import ProtocolError
 from proto.messages import Delta, Error, Hello, Resume
 
+from .connection import CLOSE_POLICY, GONE, SOCKET_GONE, WAKE, Connection, error, read_frames
 from .fair import FairPool
 from .limits import MEASUREMENT_SOLVERS, WS_MAX_SIZE, Admission, RateGuard, ReplicaLimits, remote_address
 from .metrics import CONTENT_TYPE_LATEST, Metrics
@@ -48,63 +50,9 @@ __all__ = ["create_app", "load_scenes", "serve", "ServeError", "WS_MAX_SIZE"]
 log = logging.getLogger("walkstream.server")
 
 _TICK = object()
-_GONE = object()
-_WAKE = object()
 
 #: Websocket close codes: normal, policy violation (flooding), try again later (busy).
-CLOSE_NORMAL, CLOSE_POLICY, CLOSE_RESTART, CLOSE_BUSY = 1000, 1008, 1012, 1013
-_SOCKET_GONE = (WebSocketDisconnect, RuntimeError, OSError)
-
-
-def _error(code: str, detail: str = "") -> Error:
-    return Error(code=code, message=detail or ERROR_CODES[code])
-
-
-class _Connection:
-    """One websocket's session and the loop's controls: its inbox, a close request, when it was last heard."""
-
-    def __init__(self, ws: WebSocket, session: Session, now: float, address: str = "unknown") -> None:
-        self.ws = ws
-        self.session = session
-        self.address = address
-        self.inbox: asyncio.Queue = asyncio.Queue(maxsize=256)
-        self.inbox_bytes = 0  # bytes of the frames waiting in ``inbox``
-        self.drained = asyncio.Event()  # set when the loop takes a frame out: the reader may queue again
-        self.bad_frames = 0
-        self.closing: tuple[str, int, str] | None = None  # (error code, close code, message)
-        self.done = asyncio.Event()
-        self.last_heard = now
-        self.last_save = -1e18
-        self.opened = now
-        self.send_since: float | None = None  # when the pending send began (None: not sending)
-        self.slot = False  # a hello within the session limit is being opened: it holds a slot meanwhile
-        self.resumed = False
-        self.refused_resume: str | None = None  # the scene of a session this connection could not resume into
-        self.gone = False  # the reader saw the socket end but could not queue that
-
-    def request_close(self, code: str, close_code: int, message: str = "") -> None:
-        """Ask the session loop to send ``Error(code)`` and close; it acts at its next wake."""
-        if self.closing is None:
-            self.closing = (code, close_code, message or ERROR_CODES[code])
-        try:
-            self.inbox.put_nowait(_WAKE)
-        except asyncio.QueueFull:
-            pass  # the loop is busy with queued frames and checks ``closing`` before each
-
-    def info(self, now: float) -> dict:
-        try:
-            stats = self.session.stats
-        except Exception:  # read while a worker changes the session: report what is certain
-            stats = {"session": self.session.id, "state": self.session.state.value}
-        return {
-            **stats,
-            "address": self.address,
-            "bad_frames": self.bad_frames,
-            "resumed": self.resumed,
-            "connected_s": round(now - self.opened, 3),
-            "idle_s": round(now - self.last_heard, 3),
-            "send_wait_s": 0.0 if self.send_since is None else round(now - self.send_since, 3),
-        }
+CLOSE_NORMAL, CLOSE_RESTART, CLOSE_BUSY = 1000, 1012, 1013
 
 
 def create_app(
@@ -125,7 +73,7 @@ def create_app(
     limits = limits or ReplicaLimits()
     store: StateStore = state if state is not None else MemoryStateStore()
     replica = replica or socket.gethostname()
-    conns: dict[str, _Connection] = {}
+    conns: dict[str, Connection] = {}
     sessions: dict[str, Session] = {}  # the same, by session (tests and /sessions look here)
     metrics = Metrics(lambda: len(conns))
     admission = Admission(limits)
@@ -165,11 +113,11 @@ def create_app(
     app.state.pool = pool
     app.state.fair = fair
 
-    def register(conn: _Connection) -> None:
+    def register(conn: Connection) -> None:
         conns[conn.session.id] = conn
         sessions[conn.session.id] = conn.session
 
-    def unregister(conn: _Connection) -> None:
+    def unregister(conn: Connection) -> None:
         sid = conn.session.id
         if conns.get(sid) is conn:
             del conns[sid]
@@ -249,7 +197,7 @@ def create_app(
             metrics.state_failures.labels("save").inc()
             log.warning("saving session %s failed: %s", session.id, exc)
 
-    async def resume(conn: _Connection, ask: Resume, scene: str) -> str:
+    async def resume(conn: Connection, ask: Resume, scene: str) -> str:
         """Take over session ``ask.session`` if the store has it, the token matches and it is of ``scene``;
         returns the outcome (``other_scene``: refused, and the saved state is left as it was)."""
         try:
@@ -312,9 +260,9 @@ def create_app(
         metrics.refused.labels(reason).inc()
         metrics.errors.labels(code).inc()
         try:
-            await ws.send_bytes(encode(_error(code, message)))
+            await ws.send_bytes(encode(error(code, message)))
             await ws.close(close_code)
-        except _SOCKET_GONE:
+        except SOCKET_GONE:
             pass
 
     @app.websocket("/ws")
@@ -334,50 +282,9 @@ def create_app(
     async def serve_connection(ws: WebSocket, address: str) -> None:
         loop = asyncio.get_running_loop()
         now = time.monotonic()
-        conn = _Connection(ws, Session(scenes, uuid.uuid4().hex, config, stopwatch=stopwatch), now, address)
+        conn = Connection(ws, Session(scenes, uuid.uuid4().hex, config, stopwatch=stopwatch), now, address)
         register(conn)
         guard = RateGuard(limits, now)
-
-        async def reader() -> None:
-            try:
-                while True:
-                    msg = await ws.receive()
-                    if msg["type"] == "websocket.disconnect":
-                        break
-                    # Stamped on arrival: a pong's round trip must not include a selection it waited behind.
-                    # It counts as heard only once the session accepted it (the loop sets ``last_heard``).
-                    t = time.monotonic()
-                    metrics.messages_in.inc()
-                    data = msg.get("bytes")
-                    data = data if data is not None else (msg.get("text") or "")
-                    size = len(data)
-                    verdict = guard.check(t, size)
-                    if verdict == RateGuard.PASS:
-                        # Bounded in bytes too: past ``inbox_bytes`` stop reading; TCP pushes back on the sender.
-                        while conn.inbox_bytes and conn.inbox_bytes + size > limits.inbox_bytes:
-                            conn.drained.clear()
-                            await conn.drained.wait()
-                        conn.inbox_bytes += size
-                        await conn.inbox.put((data, t, size))
-                        continue
-                    metrics.refused.labels("rate").inc()
-                    if verdict == RateGuard.CLOSE:
-                        metrics.refused.labels("abuse").inc()
-                        conn.request_close("rate_limited", CLOSE_POLICY,
-                                           f"more than {limits.rate:g} messages/s for {limits.abuse_close:g} s; "
-                                           "closing")
-                        break
-                    if verdict == RateGuard.ANSWER:
-                        await conn.inbox.put(_error("rate_limited", f"more than {limits.rate:g} messages/s "
-                                                                    f"(burst {limits.burst:g}); dropped"))
-            except _SOCKET_GONE:
-                pass
-            finally:
-                # Never block here: a full inbox means the loop is busy and will see the socket gone on its send.
-                try:
-                    conn.inbox.put_nowait(_GONE)
-                except asyncio.QueueFull:
-                    conn.gone = True
 
         def poll_encoded(session: Session, now: float) -> tuple[list[tuple[bytes, str | None]], bool, float, bytes | None]:
             """In a worker: run what is due, encode it, and snapshot the state if a delta went out."""
@@ -423,25 +330,25 @@ def create_app(
         async def opened(message: Hello, t: float) -> list[BaseModel]:
             """A hello within the session limit: refused, resumed or fresh."""
             if message.solver in MEASUREMENT_SOLVERS and not limits.allow_measurement_solvers:
-                return [_error("solver_refused", f"solver {message.solver!r} is for measurement only; this "
+                return [error("solver_refused", f"solver {message.solver!r} is for measurement only; this "
                                "replica offers it to clients only when started with --allow-measurement-solvers")]
             outcome = "fresh" if message.resume is None else await resume(conn, message.resume, message.scene)
             metrics.resumes.labels(outcome).inc()
             if outcome == "other_scene":
-                return [_error("bad_state", f"session {message.resume.session} is of scene "
+                return [error("bad_state", f"session {message.resume.session} is of scene "
                                f"{conn.refused_resume!r}, not {message.scene!r}: resume it with scene "
                                f"{conn.refused_resume!r} (its state is kept), or say hello without resume")]
             # A hello builds the session's scene tables: off the loop.
             return await loop.run_in_executor(pool, conn.session.receive, message, t)
 
-        read_task = asyncio.create_task(reader())
+        read_task = asyncio.create_task(read_frames(ws, conn, guard, limits, metrics))
         try:
             while True:
                 if conn.gone:
                     break
                 if conn.closing is not None:
                     code, close_code, text = conn.closing
-                    await send(encoded([_error(code, text)]))
+                    await send(encoded([error(code, text)]))
                     await ws.close(close_code)
                     break
                 session = conn.session
@@ -462,9 +369,9 @@ def create_app(
                         item = await asyncio.wait_for(conn.inbox.get(), max(0.0, wake - now))
                     except asyncio.TimeoutError:
                         item = _TICK
-                if item is _GONE:
+                if item is GONE:
                     break
-                if item is _WAKE:
+                if item is WAKE:
                     continue
                 try:
                     if item is _TICK:
@@ -501,8 +408,7 @@ def create_app(
                         await send(encoded([item]))
                         continue
                     data, t, size = item
-                    conn.inbox_bytes -= size
-                    conn.drained.set()
+                    conn.taken(size)
                     if session.state is SessionState.AWAIT_HELLO:
                         out = await first(data, t)
                     else:
@@ -515,17 +421,17 @@ def create_app(
                                                "refused frames on this connection; closing")
                     else:
                         conn.last_heard = max(conn.last_heard, t)
-                except _SOCKET_GONE:
+                except SOCKET_GONE:
                     raise
                 except Exception:  # a bug of ours: log loudly, tell the client, keep the session
                     log.exception("session %s failed", conn.session.id)
-                    out = [_error("internal", "the server failed handling that message")]
+                    out = [error("internal", "the server failed handling that message")]
                 await send(encoded(out))
                 session = conn.session
                 if session.dirty and time.monotonic() >= conn.last_save + limits.save_interval:
                     conn.last_save = time.monotonic()
                     await save(session)
-        except _SOCKET_GONE:
+        except SOCKET_GONE:
             pass  # the client went away mid-send: nothing to tell it
         finally:
             read_task.cancel()

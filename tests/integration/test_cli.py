@@ -132,3 +132,25 @@ def test_serve_errors_are_one_line_and_the_port_is_checked_first(tmp_path, demo_
 ])
 def test_client_refuses_a_bad_url_in_one_line(url, names):
     _one_line_error(_walkstream("client", url, "--duration", "1"), *names)
+
+
+def test_an_unexpected_failure_is_one_line_and_debug_shows_its_traceback(demo_store, monkeypatch, capsys):
+    """A failure no check foresaw (here a fault put into the store reader) is one line and exit status 2;
+    ``--debug``, anywhere on the line, lets it through with its traceback."""
+    import server.scene.inspect as inspect_module
+    from walkstream.cli import main
+
+    def broken(path):
+        raise RuntimeError(f"the reader broke on {path}")
+
+    monkeypatch.setattr(inspect_module, "inspect_store", broken)
+    with pytest.raises(SystemExit) as ended:
+        main(["inspect", str(demo_store)])
+    err = capsys.readouterr().err
+    assert ended.value.code == 2
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert "RuntimeError" in err and str(demo_store) in err and "--debug" in err
+    with pytest.raises(RuntimeError, match="the reader broke"):
+        main(["inspect", "--debug", str(demo_store)])
+    with pytest.raises(RuntimeError, match="the reader broke"):
+        main(["--debug", "inspect", str(demo_store)])

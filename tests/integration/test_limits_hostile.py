@@ -232,3 +232,95 @@ def test_admission_counts_connections_and_reconnects_per_address():
     assert admission.admit("a", 0.0, 0, 2)[0] == "connect_rate"  # three opened at once: the burst is spent
     assert admission.admit("a", 1.0, 0, 2) is None  # a second later, one more
     assert admission.admit("c", 1.0, 4, 0)[0] == "busy" and admission.admit("c", 1.0, 0, 10)[0] == "pending"
+
+
+# ----------------------------------------------------------------------------- bytes waiting
+
+
+def _raw_client(url: str, rcvbuf: int):
+    """A websocket over a socket that reads nothing after the handshake (``rcvbuf`` bytes of receive buffer):
+    (socket, sans-I/O protocol)."""
+    import socket as socketlib
+
+    from websockets.client import ClientProtocol
+    from websockets.http11 import Response
+    from websockets.uri import parse_uri
+
+    uri = parse_uri(url)
+    sock = socketlib.socket()
+    sock.setsockopt(socketlib.SOL_SOCKET, socketlib.SO_RCVBUF, rcvbuf)
+    sock.connect((uri.host, uri.port))
+    sock.settimeout(10)
+    proto = ClientProtocol(uri, max_size=None)
+    proto.send_request(proto.connect())
+    sock.sendall(b"".join(proto.data_to_send()))
+    while not any(isinstance(e, Response) for e in proto.events_received()):
+        data = sock.recv(256)  # the response's bytes only, as far as they come before the server's frames
+        assert data, "the server closed during the handshake"
+        proto.receive_data(data)
+    assert proto.handshake_exc is None, proto.handshake_exc
+    return sock, proto
+
+
+def test_bytes_waiting_for_a_busy_session_stay_bounded_and_tcp_pushes_back(demo_store):
+    """A client that never reads (its session blocks sending its first delta) and sends frames within the
+    byte rate: the server reads at most ``inbox_bytes`` (256 KiB) ahead of its session, then stops reading
+    that socket; a good client beside it is served."""
+    import socket as socketlib
+
+    from proto.messages import Camera
+    from server.scene.store import SceneStore
+
+    with SceneStore.open(demo_store) as store:
+        start = dict(store.index.start)
+    bound = ReplicaLimits().inbox_bytes
+    frame = b"\x00" * (60 * 1024)
+    with ServerProcess([demo_store], extra=["--send-buffer", "8192"]) as srv:
+        sock, proto = _raw_client(srv.url, rcvbuf=4096)
+        try:
+            proto.send_binary(_hello(viewport=[640, 360]))
+            proto.send_binary(encode(Camera(t=0.0, **start)))
+            sock.sendall(b"".join(proto.data_to_send()))
+
+            def row() -> dict:
+                rows = httpx.get(srv.http + "/sessions", headers=srv.admin_headers, timeout=10).json()
+                assert len(rows) == 1, rows
+                return rows[0]
+
+            for _ in range(3000):  # until the session is stuck sending its first delta to a client that reads none
+                if row()["send_wait_s"] > 0.2:
+                    break
+            else:
+                raise AssertionError(f"the session never blocked in a send: {row()}")
+            sent = 0
+            seen: list[dict] = []
+            pushed_back = False
+            end = time.monotonic() + 60
+            next_send = time.monotonic()
+            while time.monotonic() < end:
+                if time.monotonic() >= next_send:  # 240 KiB/s: within the byte rate, so none is dropped
+                    next_send += 0.25
+                    proto.send_binary(frame)
+                    out = b"".join(proto.data_to_send())
+                    sock.settimeout(0.2)
+                    try:
+                        sock.sendall(out)
+                        sent += len(frame)
+                    except (socketlib.timeout, TimeoutError):
+                        pushed_back = True  # the server's kernel buffer is full: TCP pushes back
+                        break
+                seen.append(row())
+                assert seen[-1]["waiting_bytes"] <= bound, seen[-1]
+                if seen[-1]["reads_paused"] >= 1 and sent >= 2 * bound:
+                    break
+            last = seen[-1]
+            assert last["reads_paused"] >= 1, (sent, last)
+            assert last["send_wait_s"] > 0 and last["selections"] <= 1, last  # still in its first delta's send
+            assert max(r["waiting_bytes"] for r in seen) > bound - len(frame), "the bound was never approached"
+            assert pushed_back or sent >= 2 * bound
+            # A good client beside it: welcomed and sent its first delta.
+            with connect(srv.url, open_timeout=10, max_size=None) as good:
+                good.send(_hello())
+                assert isinstance(decode_server(good.recv(timeout=10)), Welcome)
+        finally:
+            sock.close()
