@@ -207,7 +207,8 @@ def bench_encoding(
 @bench_app.command("hostile")
 def bench_hostile(
     store: Optional[Path] = typer.Option(None, "--store", help="scene store (default: the cached demo scene)"),
-    seconds: float = typer.Option(8.0, min=2.0, help="seconds of the good client's run per attack"),
+    seconds: float = typer.Option(16.0, min=2.0, help="seconds of the good client's run per attack (16: about 32 "
+                                  "deltas at τ = 0.5 s, so one delta more or less at the run's edges is 3 %)"),
     attack: Optional[list[str]] = typer.Option(None, "--attack", help="run only these attacks (repeatable)"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
 ) -> None:

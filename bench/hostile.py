@@ -322,7 +322,7 @@ def _phase(server, scene: str, attack: str | None, seconds: float, target: float
     return phase
 
 
-def run(store: Path, *, seconds: float = 8.0, attacks: list[str] | None = None, target_ms: float = 20.0,
+def run(store: Path, *, seconds: float = 16.0, attacks: list[str] | None = None, target_ms: float = 20.0,
         say: Callable[[str], None] = lambda s: None) -> dict:
     """Each attack in turn beside one good client, after a reference run without attack; figures + verdicts."""
     from bench.demo import ServerProcess
