@@ -66,7 +66,7 @@ def run_client(
     reconnect_timeout: float = 10.0,
     silence_timeout: float | None = 10.0,
     tour: "Sequence[dict] | None" = None,
-    governor: bool = False,
+    governor: bool = True,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
@@ -87,6 +87,8 @@ def run_client(
     is retried as long on the first connect too.
     ``tour`` (keys ``{t, eye, forward, up}``, as ``proto.messages.TourKey``) replaces the
     tour the server's welcome carries: evaluations drive the camera along paths of their own.
+    ``governor`` (on by default) asks for the delta's ladder and corrects the selection every
+    frame to hold ``target_frame_time`` (``client.governor``); off, the server's plan is drawn as it is.
     Raises ``client.connection.ClientError`` if the session cannot be opened, ``client.window.WindowError``
     if the window cannot.
     """
@@ -161,6 +163,8 @@ def run_client(
         run.bytes_received = sum(run.bytes_per_connection)
         run.rejected = list(loop.cache.rejected)
         run.unmorphed = renderer.unmorphed
+        if loop.governor is not None:
+            run.governor = loop.governor.predictor.report()
         return run
     finally:
         if loop is not None and loop.splats is not None:

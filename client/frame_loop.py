@@ -215,8 +215,8 @@ class FrameLoop:
                         self.renderer.set_morph_target(rep, targets)
 
     def _ladder(self, delta: Delta) -> None:
-        """Give the governor the delta's ladder, over the steps whose both ends the cache holds, and make
-        the finer end of each a morph target so a step is drawn as a geomorph."""
+        """Give the governor the delta's ladder, over the steps whose both ends the cache holds (a chain stops at
+        a level it lacks), and make the finer end of each a morph target so a step is drawn as a geomorph."""
         rep = np.asarray(delta.ladder_rep, np.int64)
         to = np.asarray(delta.ladder_to, np.int64)
         held = self.cache.holds(rep) & self.cache.holds(to)
@@ -230,10 +230,10 @@ class FrameLoop:
         cost = np.asarray(delta.ladder_cost, np.float64)[held_idx]
         value = np.asarray(delta.ladder_value, np.float64)[held_idx]
         key = reps - levels.astype(np.int64)
-        self.governor.take(GovernorLadder.build(delta.t0, key, np.sign(to - rep), cost, value, delta.ladder_base,
-                                                levels),
+        self.governor.take(GovernorLadder.build(delta.t0, key, to - rep, cost, value, delta.ladder_base, levels),
                            reset=delta.reset or delta.start is None)
-        for fine in np.unique(np.maximum(rep, to)).tolist():
+        # The finer end of each unit step morphs onto the coarser one: its morph target.
+        for fine in np.unique(np.where(to < rep, to + 1, to)).tolist():
             if not self.renderer.has_morph_target(fine):
                 targets = self.cache.morph_targets(fine)
                 if targets is not None:

@@ -4,29 +4,34 @@ The server selects every τ for an interval a round trip ahead; between two
 selections the view changes, and so does the machine's speed. The client knows
 its own frames exactly and at once, so it corrects the plan every frame, F&S's
 incremental step run locally: each delta's ladder (``server.select.ladder``)
-offers, per selected object, a step down to the next coarser resident level and
-a step up to a finer one sent ahead, each with its cost change (model seconds)
-and its value (benefit per second). The steps, sorted by value (a step up never
-before its object's step down: values are made concave per object), form one
-list; a state is a prefix of it. Each frame the governor predicts the frame's
-time as the time per unit of drawn model cost measured over the last frame times
-the units of a state, then takes decrements of lowest value until the prediction
-fits its aim (a share of the target), or increments of highest value while it
-fits (outside a band around the aim, so noise does not make it chatter; and none
-while a decrement is still ramping).
+offers, per selected object, a chain of unit steps down through the coarser
+levels it holds and up through the finer ones sent ahead, each with its cost
+change (model seconds) and its value (benefit per second). The steps, sorted by
+value (values are made concave along each chain, so a finer increment never
+comes before a coarser one of the same object), form one list; a state is a
+prefix of it. Each frame the governor predicts the frame's time from the model
+units of a state (``FramePredictor``: the time per unit measured over its last
+frames, with the frame's fixed part where that is measured to predict better),
+then takes decrements of lowest value until the prediction fits its aim (a share
+of the target), or increments of highest value while it fits (outside a band
+around the aim, so noise does not make it chatter; and none while a decrement is
+still ramping).
 
 A change is never drawn at once: each object's offset from the plan ramps over
-``ramp`` seconds (a change of two levels as a chain of two adjacent morphs), drawn
-as the schedule's geomorph between adjacent levels, so nothing pops.
+``ramp`` seconds (a change of two levels or more as a chain of adjacent morphs,
+at most two levels per ramp), drawn as the schedule's geomorph between adjacent
+levels, so nothing pops.
 
 Pure numpy, no clocks: the caller passes client times and measured frame times.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+
+from .frame_predictor import FramePredictor
 
 __all__ = ["Governor", "GovernorLadder", "RAMP"]
 
@@ -39,36 +44,43 @@ RAMP = 0.1
 class GovernorLadder:
     """One delta's ladder per object key, in the governor's terms.
 
+    Each key's steps are unit increments along its chain, from its coarsest offered level up: a step down of
+    depth d is the increment from level L − d to L − d + 1 (``pos`` 1 − d), a step up of depth u the one from
+    L + u − 1 to L + u (``pos`` u), L the selected level. A state takes a prefix of all steps by value,
+    highest first; values are made non-increasing along each chain, so a prefix takes a key's increments in
+    chain order and a key's level is L − (its steps down) + (its steps taken).
+
     t0 : client time from which it governs (the delta's switch)
     key : (n,) sorted unique object keys with at least one step
-    down_cost, up_cost : (n,) model seconds saved / spent by the step (0 where there is none)
-    has_down, has_up : (n,) bool
-    rank_down, rank_up : (n,) each key's step's place among all steps, highest value first (int64 max: none)
+    n_down : (n,) steps down each key offers (its chain's depth below the selected level)
+    step_key : (k,) the key index of each step; pos : (k,) its place in its chain (above); cost : (k,) model seconds
+    rank : (k,) its place among all steps, highest value first
     cum : (k + 1,) running cost of the steps in that order (cum[m]: the first m taken)
     fixed : model seconds of the all-coarse state (the selection less every step down)
     base : model seconds of the selection as planned
-    lo, hi : (n,) the levels the key's steps reach (the selected level less its step down, plus its step up)
+    lo, hi : (n,) the levels the key's steps reach (its selected level less its steps down, plus its steps up)
     """
 
     t0: float
     key: np.ndarray
-    down_cost: np.ndarray
-    up_cost: np.ndarray
-    has_down: np.ndarray
-    has_up: np.ndarray
-    rank_down: np.ndarray
-    rank_up: np.ndarray
+    n_down: np.ndarray
+    step_key: np.ndarray
+    pos: np.ndarray
+    cost: np.ndarray
+    rank: np.ndarray
     cum: np.ndarray
     fixed: float
     base: float
     lo: np.ndarray
     hi: np.ndarray
+    _offsets: dict = field(default_factory=dict, compare=False, repr=False)  # m → offsets(m), the last few
 
     @classmethod
     def build(cls, t0: float, key: np.ndarray, step: np.ndarray, cost: np.ndarray, value: np.ndarray,
               base: float, level: np.ndarray | None = None) -> "GovernorLadder":
-        """From a delta's steps: ``key`` (k,) object keys, ``step`` (k,) −1 down / +1 up, ``cost`` and ``value``;
-        ``level`` (k,) the selected level each starts from (None: the levels are not bounded)."""
+        """From a delta's steps: ``key`` (k,) object keys, ``step`` (k,) the signed depth each reaches (−d down,
+        +u up; a chain must be contiguous from ±1, a step beyond a gap is left out), ``cost`` and ``value``;
+        ``level`` (k,) the selected level its chain starts from (None: the levels are not bounded)."""
         key = np.asarray(key, np.int64)
         step = np.asarray(step, np.int64)
         cost = np.asarray(cost, np.float64)
@@ -76,39 +88,55 @@ class GovernorLadder:
         keys = np.unique(key)
         n = keys.size
         idx = np.searchsorted(keys, key)
-        down, up = step < 0, step > 0
-        has_down, has_up = np.zeros(n, bool), np.zeros(n, bool)
-        down_cost, up_cost = np.zeros(n), np.zeros(n)
-        down_value, up_value = np.full(n, np.inf), np.zeros(n)
-        has_down[idx[down]], down_cost[idx[down]], down_value[idx[down]] = True, cost[down], value[down]
-        has_up[idx[up]], up_cost[idx[up]], up_value[idx[up]] = True, cost[up], value[up]
-        # Concave per object: its step up is worth at most its step down, so a prefix never takes it first.
-        up_value = np.minimum(up_value, down_value)
-        ki = np.concatenate([np.nonzero(has_down)[0], np.nonzero(has_up)[0]])
-        is_up = np.concatenate([np.zeros(int(has_down.sum()), bool), np.ones(int(has_up.sum()), bool)])
-        v = np.where(is_up, up_value[ki], down_value[ki])
-        c = np.where(is_up, up_cost[ki], down_cost[ki])
-        order = np.lexsort((is_up, -v))
+        # Contiguous chains only: sorted by (key, direction, depth), the j-th step of a chain has depth j + 1.
+        depth = np.abs(step)
+        order = np.lexsort((depth, step > 0, idx))
+        group = idx[order] * 2 + (step[order] > 0)
+        first = np.concatenate([[True], group[1:] != group[:-1]]) if order.size else np.zeros(0, bool)
+        start = np.maximum.accumulate(np.where(first, np.arange(order.size), 0)) if order.size else first
+        keep = np.zeros(step.size, bool)
+        keep[order] = (depth[order] == np.arange(order.size) - start + 1) & (depth[order] > 0)
+        idx, step, cost, value = idx[keep], step[keep], cost[keep], value[keep]
+        pos = np.where(step < 0, 1 + step, step)
+        down = step < 0
+        n_down = np.bincount(idx[down], minlength=n).astype(np.int64)
+        n_up = np.bincount(idx[~down], minlength=n).astype(np.int64)
+        # Concave per key: along its chain from the coarsest increment up, values never rise, so a prefix by
+        # value takes a key's increments in order (a finer one never before a coarser).
+        if idx.size:
+            lo_pos = int(pos.min())
+            grid = np.full((n, int(pos.max()) - lo_pos + 1), np.inf)
+            grid[idx, pos - lo_pos] = value
+            value = np.minimum.accumulate(grid, axis=1)[idx, pos - lo_pos]
+        order = np.lexsort((pos, -value))
         rank = np.empty(order.size, np.int64)
         rank[order] = np.arange(order.size)
-        big = np.iinfo(np.int64).max
-        rank_down, rank_up = np.full(n, big), np.full(n, big)
-        rank_down[ki[~is_up]] = rank[~is_up]
-        rank_up[ki[is_up]] = rank[is_up]
-        cum = np.concatenate([[0.0], np.cumsum(c[order])])
-        fixed = float(base) - float(down_cost.sum())
+        cum = np.concatenate([[0.0], np.cumsum(cost[order])])
+        fixed = float(base) - float(cost[down].sum())
         if level is None:
             lo, hi = np.full(n, -np.inf), np.full(n, np.inf)
         else:
             sel = np.zeros(n)
-            sel[idx] = np.asarray(level, np.float64)
-            lo, hi = sel - has_down, sel + has_up
-        return cls(float(t0), keys, down_cost, up_cost, has_down, has_up, rank_down, rank_up, cum, fixed,
-                   float(base), lo, hi)
+            sel[np.searchsorted(keys, key)] = np.asarray(level, np.float64)
+            lo, hi = sel - n_down, sel + n_up
+        return cls(float(t0), keys, n_down, idx, pos, cost, rank, cum, fixed, float(base), lo, hi)
 
     def offsets(self, m: int) -> np.ndarray:
         """(n,) level offset from the plan of each key in the state that takes the first ``m`` steps."""
-        return np.where(self.has_down, (self.rank_down < m).astype(np.float64) - 1.0, 0.0) + (self.rank_up < m)
+        got = self._offsets.get(m)
+        if got is None:
+            taken = np.bincount(self.step_key[self.rank < m], minlength=self.key.size)
+            got = (taken - self.n_down).astype(np.float64)
+            if len(self._offsets) > 4:
+                self._offsets.clear()
+            self._offsets[m] = got
+        return got
+
+    def units(self, g: np.ndarray) -> float:
+        """Model seconds of drawing each key at offset ``g`` (n,) from the plan: a key partly down still draws
+        its finer level, so a step's increment counts while the drawn level (``ceil``) is at or above it."""
+        drawn = np.ceil(g - 1e-9)
+        return self.fixed + float(self.cost[self.pos <= drawn[self.step_key]].sum())
 
     @property
     def plan_steps(self) -> int:
@@ -139,18 +167,17 @@ class Governor:
         self.tail = float(tail)
         self.ratios = np.full(int(window), np.nan)
         self.seen = 0
-        self.rates = np.zeros(0)
         self.pending: list[GovernorLadder] = []
         self.ladder: GovernorLadder | None = None
         self.m = 0
-        self.rate: float | None = None  # measured seconds per unit of drawn model cost (the predictor)
+        self.predictor = FramePredictor()  # a frame's seconds from the units it draws, measured here
         self.units = 0.0  # model seconds of what the last ``apply`` drew
         self.predicted = 0.0  # its predicted time
         self.down = self.up = 0  # objects the last ``apply`` drew coarser / finer than the plan
         self.gkey = np.zeros(0, np.int64)  # keys with an offset, sorted
         self.g = np.zeros(0)  # their drawn offsets (continuous levels)
         self.goal = np.zeros(0)  # the offsets they ramp to
-        self.speed = np.zeros(0)  # levels per second of their ramps: each change takes ``ramp`` seconds
+        self.speed = np.zeros(0)  # levels per second of their ramps
         self.lo = np.zeros(0)  # the levels their steps reach: a governed level stays within them, or within
         self.hi = np.zeros(0)  # where the schedule's own ramp has it
         self.t: float | None = None
@@ -169,10 +196,7 @@ class Governor:
             if self.predicted > 0:
                 self.ratios[self.seen % self.ratios.size] = float(time) / self.predicted
                 self.seen += 1
-            # The predictor: the median of the last three frames' time per unit drawn — one slow frame alone
-            # does not move it, two in a row do (a machine that slowed is followed within three frames).
-            self.rates = np.concatenate([self.rates[-2:], [float(time) / self.units]])
-            self.rate = float(np.median(self.rates))
+            self.predictor.observe(float(time), self.units)
 
     @property
     def steer(self) -> float:
@@ -207,16 +231,16 @@ class Governor:
     def _decide(self, lad: GovernorLadder, ramping_down: bool) -> int:
         """The number of steps to take: shrink to the aim when the prediction is above its band, grow to it
         when below (and no decrement is still ramping), else stay."""
-        if self.rate is None or self.rate <= 0:
+        aim = self.steer * self.target
+        fits = self.predictor.units_for(aim)  # model seconds a frame at the aim may draw
+        if fits is None:
             return self.m
-        cap = self.target / self.rate  # model seconds that fit in the target
         cum, m = lad.cum, min(self.m, lad.cum.size - 1)
-        now = lad.fixed + cum[m]
-        aim = self.steer
-        fit = int(max(np.searchsorted(cum, aim * cap - lad.fixed, side="right") - 1, 0))
-        if now > (1.0 + self.slack) * aim * cap:
+        now = self.predictor.predict(lad.fixed + cum[m])
+        fit = int(max(np.searchsorted(cum, fits - lad.fixed, side="right") - 1, 0))
+        if now > (1.0 + self.slack) * aim:
             return fit
-        if now < (1.0 - self.slack) * aim * cap and not ramping_down:
+        if now < (1.0 - self.slack) * aim and not ramping_down:
             return max(fit, m)
         return m
 
@@ -230,7 +254,7 @@ class Governor:
         level = np.asarray(level, np.float64)
         if lad is None or self.gkey.size == 0:
             self.units, self.down, self.up = (lad.base if lad is not None else 0.0), 0, 0
-            self.predicted = 0.0 if self.rate is None else self.rate * self.units
+            self.predicted = self.predictor.predict(self.units) or 0.0
             return level
         # Target offset of every key with one: the state's for the ladder's keys, 0 for the rest.
         li = np.searchsorted(lad.key, self.gkey)
@@ -244,26 +268,25 @@ class Governor:
         self.m = self._decide(lad, ramping_down)
         # Until a frame is measured there is nothing to correct the plan with: it is drawn as it is.
         goal = np.zeros(self.g.size)
-        if self.rate is not None and lad.key.size:
+        if self.predictor.rate is not None and lad.key.size:
             goal = np.where(on, lad.offsets(self.m)[li_c], 0.0)
-        # A new goal starts a ramp that takes ``ramp`` seconds: two levels at once go as a chain of adjacent
-        # morphs at twice the speed (Zach's chains), so a shrink is drawn within one ramp whatever it undoes.
+        # A new goal starts a ramp of ``ramp`` seconds: two levels or more go as a chain of adjacent morphs at
+        # twice the speed (Zach's chains), so a shrink that first undoes a step up is drawn within one ramp —
+        # never faster, so a level moves at most two levels per ramp.
         moved = goal != self.goal
-        self.speed = np.where(moved, np.maximum(np.abs(goal - self.g), 1.0) / self.ramp, self.speed)
+        self.speed = np.where(moved, np.clip(np.abs(goal - self.g), 1.0, 2.0) / self.ramp, self.speed)
         self.goal = goal
         step = dt * self.speed
         self.g = self.g + np.clip(goal - self.g, -step, step)
         near = np.abs(self.g - goal) < 1e-9
         self.g[near] = goal[near]
-        # What is drawn: a key partly down still draws its selected level, partly up the finer one.
-        g_on = self.g[on]
-        idx = li[on]
-        full_down = g_on <= -1.0 + 1e-9
-        some_up = g_on > 1e-9
-        self.units = lad.base - float(lad.down_cost[idx][full_down].sum()) + float(lad.up_cost[idx][some_up].sum())
-        self.down = int((g_on < -1e-9).sum() + (self.g[~on] < -1e-9).sum())
-        self.up = int((g_on > 1e-9).sum() + (self.g[~on] > 1e-9).sum())
-        self.predicted = 0.0 if self.rate is None else self.rate * self.units
+        # What is drawn: a key partly down still draws its finer level, partly up the finer one.
+        g_lad = np.zeros(lad.key.size)
+        g_lad[li[on]] = self.g[on]
+        self.units = lad.units(g_lad)
+        self.down = int((self.g < -1e-9).sum())
+        self.up = int((self.g > 1e-9).sum())
+        self.predicted = self.predictor.predict(self.units) or 0.0
         settled = self.g == 0
         if settled.any() and not on[settled].all():  # forget keys that left the ladder and came back to plan
             drop = settled & ~on

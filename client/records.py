@@ -109,6 +109,8 @@ class ClientRun:
     bytes_per_connection : bytes received over each connection, in order (their sum is ``bytes_received``)
     deltas_per_connection : deltas received over each connection, in order
     attempts : hellos it took to open the session (more than one when the server was ``busy``)
+    governor : with the frame governor, its predictors' held-out errors and the one in force
+        (``FramePredictor.report``); None without
     """
 
     welcome: Welcome
@@ -132,3 +134,4 @@ class ClientRun:
     bytes_per_connection: list[int] = field(default_factory=list)
     deltas_per_connection: list[int] = field(default_factory=list)
     attempts: int = 1
+    governor: dict | None = None

@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 __all__ = [
     "PROTOCOL_VERSION",
+    "LADDER_DEPTH",
     "Hello",
     "Welcome",
     "Camera",
@@ -42,7 +43,7 @@ __all__ = [
     "SERVER_TYPES",
 ]
 
-PROTOCOL_VERSION = 5
+PROTOCOL_VERSION = 6
 
 #: Rendering algorithms (Funkhouser & Séquin's R), cheapest first; an index into this is an ``algorithm``.
 ALGORITHMS = ("flat", "lit", "textured")
@@ -53,6 +54,8 @@ AlgorithmName = Literal[ALGORITHMS]
 MAX_COORD = 1.0e7
 #: A delta never names more representations than this in one list.
 MAX_LIST = 1 << 20
+#: Levels a governor ladder's chain of steps reaches from the selected level, either way.
+LADDER_DEPTH = 4
 
 Coord = Annotated[float, Field(ge=-MAX_COORD, le=MAX_COORD)]
 Vec3 = Annotated[list[Coord], Field(min_length=3, max_length=3)]
@@ -347,9 +350,10 @@ class Delta(_Message):
     vegetation: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
     resolution: Annotated[list[Annotated[float, Field(ge=0.0, le=1.0)]], Field(max_length=MAX_LIST)] = []
     ramps: Morphs = Morphs()
-    #: The frame governor's ladder (``server.select.ladder``), lowest value first: a step from the selected
-    #: ``ladder_rep`` to the adjacent level ``ladder_to`` (± 1) saves (down) or spends (up) ``ladder_cost``
-    #: model seconds for a benefit change of ``ladder_value`` per second; ``ladder_base`` is the selection's cost.
+    #: The frame governor's ladder (``server.select.ladder``), lowest value first: a unit step of the chain of
+    #: the selected ``ladder_rep`` that reaches level ``ladder_to`` (d = |ladder_to − ladder_rep| ≤ LADDER_DEPTH
+    #: levels away, from the level one nearer) saves (down) or spends (up) ``ladder_cost`` model seconds for a
+    #: benefit change of ``ladder_value`` per second; ``ladder_base`` is the selection's cost.
     ladder_rep: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
     ladder_to: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
     ladder_cost: Annotated[list[Annotated[float, Field(gt=0.0, le=60.0)]], Field(max_length=MAX_LIST)] = []
@@ -373,8 +377,8 @@ class Delta(_Message):
         n = len(self.ladder_rep)
         if not (len(self.ladder_to) == len(self.ladder_cost) == len(self.ladder_value) == n):
             raise ValueError("ladder columns must have equal lengths")
-        if any(abs(b - a) != 1 for a, b in zip(self.ladder_rep, self.ladder_to)):
-            raise ValueError("a ladder step goes to an adjacent level (ladder_to = ladder_rep ± 1)")
+        if any(not 1 <= abs(b - a) <= LADDER_DEPTH for a, b in zip(self.ladder_rep, self.ladder_to)):
+            raise ValueError(f"a ladder step reaches 1 to {LADDER_DEPTH} levels from its selected representation")
         if n and not set(self.ladder_rep) <= set(self.selection):
             raise ValueError("a ladder step must start from a selected representation")
         if any(b < a for a, b in zip(self.ladder_value, self.ladder_value[1:])):

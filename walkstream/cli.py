@@ -46,8 +46,9 @@ def client(
     navigate: Literal["tour", "fly", "walk"] = typer.Option(
         "tour", help="who moves the camera: the scene's tour, or you flying or walking (needs --window)"),
     false_colour: bool = typer.Option(False, "--false-colour", help="draw each object in a false colour"),
-    governor: bool = typer.Option(False, "--governor/--no-governor",
-                                  help="correct the server's selection every frame along each delta's ladder"),
+    governor: bool = typer.Option(True, "--governor/--no-governor",
+                                  help="correct the server's selection every frame along each delta's ladder "
+                                       "(the frame governor; --no-governor draws the server's plan as it is)"),
     reconnect_timeout: float = typer.Option(10.0, min=0.0, help="seconds to keep redialling a lost connection "
                                             "(resuming the session, nothing re-sent); 0: a loss ends the run"),
 ) -> None:
@@ -77,7 +78,7 @@ def client(
     from bench.demo import summarize
 
     typer.echo(json.dumps({**summarize(run, target_ms / 1e3).as_dict(), "reconnects": len(run.reconnects),
-                           "resent": run.resent, "close_reason": run.close_reason}))
+                           "resent": run.resent, "close_reason": run.close_reason, "governor": run.governor}))
 
 
 app.command()(server_cli.build)

@@ -56,10 +56,11 @@ class Context:
     scene: str
     target_ms: float = 50.0
     method: str = "predictive"
-    #: The client corrects every frame along the delta's ladder (``client.governor``). Off, as a client runs by
-    #: default: the governor ramps a level in ``client.governor.RAMP`` (0.1 s), faster than the morph rate
-    #: ``level_jumps`` holds the schedule to, so its steps would count as jumps.
-    governor: bool = False
+    #: The client corrects every frame along the delta's ladder (``client.governor``), as a client runs by
+    #: default. The oscillation scenario runs without it: it judges the server's morph schedule by the
+    #: schedule's own morph rate, and the governor's ramps (up to two levels per ``client.governor.RAMP``)
+    #: are faster than that by design.
+    governor: bool = True
     viewport: tuple[int, int] = (640, 360)
     tau: float = 0.5
     seed: int = 0
@@ -109,8 +110,10 @@ class Context:
         return max(floor, s * self.scale)
 
     def run(self, keys: list[dict], duration: float, *, method: str | None = None, target_ms: float | None = None,
-            url: str | None = None, trace: bool = True, on_frame: Callable | None = None):
-        """One session along ``keys`` for ``duration`` s of frames (``client.app.run_client``, traced)."""
+            url: str | None = None, trace: bool = True, on_frame: Callable | None = None,
+            governor: bool | None = None):
+        """One session along ``keys`` for ``duration`` s of frames (``client.app.run_client``, traced); the
+        governor as ``self.governor`` unless ``governor`` says otherwise."""
         from client.app import run_client
 
         m = METHODS[method or self.method]
@@ -118,7 +121,7 @@ class Context:
         return run_client(url or self.url, self.scene, duration=duration, viewport=self.viewport, fov_y=self.fov_y,
                           target_frame_time=(target_ms or self.target_ms) / 1e3, solver=solver, predict=predict,
                           morph=morph, trace=trace, tour=keys, max_fps=MAX_FPS, timeout=30.0, on_frame=on_frame,
-                          governor=self.governor)
+                          governor=self.governor if governor is None else governor)
 
 
 def _result(name: str, passed: bool, text: str, figures: dict) -> dict:
@@ -151,7 +154,7 @@ def spin(ctx: Context) -> dict:
     duration = hold + spin_s + after
     t0, t1 = hold, hold + spin_s
     run = ctx.run(keys, duration)
-    ref = ctx.run(keys, duration, method="static")
+    ref = ctx.run(keys, duration, method="static", governor=False)  # unmanaged: no governor either
     from client.navigation import Tour
 
     tour = Tour(keys)
@@ -229,7 +232,7 @@ def oscillation(ctx: Context) -> dict:
     amplitude = min(2.0 * max(1.0, a.speed / WALK_SPEED), max_speed() * period / 2)
     duration = ctx.seconds(8.0, floor=2.0)
     keys = oscillation_path(a, amplitude=amplitude, period=period, duration=duration)
-    run = ctx.run(keys, duration)
+    run = ctx.run(keys, duration, governor=False)  # the schedule's morphs alone (``Context.governor``)
     fig = {
         "anchor": a.source, "amplitude_m": rounded(amplitude), "period_s": period,
         "levels": level_jumps(run.trace, span=_span(ctx.index), tau=ctx.tau,

@@ -30,9 +30,10 @@ from .camera import View, cull_hierarchy, widened
 from .cost import CostModel
 from .solvers.candidates import NO_LIMIT, Candidates, TimeLimit
 
-__all__ = ["Levels", "Scene", "Memory", "Choice", "Interval", "select", "HIERARCHICAL", "MIXED"]
+__all__ = ["Levels", "Scene", "Memory", "Choice", "Interval", "select", "HIERARCHICAL", "MIXED", "DEFAULT_FACTORS"]
 
-_DEFAULT_FACTORS = BenefitFactors()
+#: The benefit factors a session without its own uses (one object: "auto" accuracy resolves once on it).
+DEFAULT_FACTORS = BenefitFactors()
 
 #: Solvers that read the hierarchical view, and the one that also takes the vegetation.
 HIERARCHICAL = frozenset({"hierarchical"})
@@ -263,7 +264,7 @@ def select(
     """
     if isinstance(scene, Levels):
         scene = Scene(flat=scene, n_objects=int(scene.ids.max()) + 1 if scene.ids is not None and scene.n else scene.n)
-    factors = _DEFAULT_FACTORS if factors is None else factors  # one, not a new one validated each τ
+    factors = DEFAULT_FACTORS if factors is None else factors  # one, not a new one validated each τ
     view_levels = scene.hierarchy if solver in HIERARCHICAL and scene.hierarchy is not None else scene.flat
     factors = resolved_accuracy(factors, hierarchical=solver in HIERARCHICAL, errors=view_levels.rep_error is not None)
     solve = solvers.get(solver)

@@ -23,9 +23,10 @@ from proto.messages import ALGORITHMS, Delta, FrameReport, ModelAdd, Morphs, Rep
 
 from ..clock import Delivery
 from ..select.cost import FrameCostModel
-from ..select.ladder import Ladder, build_ladder, prefetch
+from ..select.benefit import resolved_accuracy
+from ..select.ladder import Ladder, build_ladder, held_chain, prefetch
 from ..select.morph import MorphScheduler, mark
-from ..select.selection import Interval, Memory, select
+from ..select.selection import DEFAULT_FACTORS, Interval, Memory, select
 from ..select.snapshot import dump_fields, load_fields
 from ..select.solvers.candidates import NO_LIMIT, TimeLimit
 from .gate import through_gate
@@ -149,14 +150,16 @@ class Pipeline:
             # Tree groups drawn now, and those a ramp still draws from the window on, must be resident too.
             drawn_groups = np.asarray(choice.x_reps, np.int64)[np.asarray(choice.x) > 0]
             groups = np.union1d(drawn_groups, rt.needed_key[rt.needed_hi > 0]).astype(np.int64)
-        below = reps - 1 if hello.governor else np.zeros(0, np.int64)  # the ladder's steps down stay resident
-        ok = below >= 0
-        ok[ok] = table.rep_object[below[ok]] == table.rep_object[below[ok] + 1]
-        below = below[ok & mirror.resident[np.maximum(below, 0)]]
+        # The ladder's chains down stay resident: the levels that hold the frame when the plan is too heavy.
+        below = np.zeros(0, np.int64)
+        if hello.governor:
+            arrays = self._arrays(mirror)
+            below = np.concatenate([below] + [to for _, to in held_chain(
+                reps, -1, rep_object=arrays["rep_object"], resident=arrays["resident"], eligible=arrays["eligible"])])
         # The previous ladder governs until this delta's switch, and its steps ramp back after: kept too.
         new, drop = mirror.plan(np.concatenate([reps, drawn_groups]),
                                 np.concatenate([needed, groups, ahead, below, self.ladder_to]), seq)
-        ladder = self._ladder(reps, algorithm, view, cost, mirror) if hello.governor else Ladder.empty()
+        ladder = self._ladder(reps, view, cost, mirror) if hello.governor else Ladder.empty()
         self.ladder_to = ladder.to
         if new.size and rank is not None:
             # Best benefit per byte first (a chain's intermediates with their target, coarse before fine).
@@ -206,15 +209,23 @@ class Pipeline:
         gate = self.last_gate
         left = max(float(gate.get("budget", gate.get("link", 0.0))) - float(gate.get("bytes", 0)), 0.0)
         cam = view.views[0] if isinstance(view, Interval) else view
-        return prefetch(reps, cam, rep_bytes=self.table.rep_bytes, left=left, **self._arrays(mirror))
+        return prefetch(reps, cam, rep_bytes=self.table.rep_bytes, left=left, rep_error=self._ladder_errors(),
+                        **self._arrays(mirror))
 
-    def _ladder(self, reps: np.ndarray, algorithm, view, cost: FrameCostModel, mirror: CacheMirror) -> Ladder:
+    def _ladder_errors(self) -> np.ndarray | None:
+        """The levels' geometric errors where the session prices accuracy by them (screen-space error), else None:
+        the ladder values steps as the selection values levels."""
+        flat = self.scene.flat
+        factors = resolved_accuracy(self.config.factors or DEFAULT_FACTORS, errors=flat.rep_error is not None)
+        return flat.rep_error if factors.accuracy == "sse" else None
+
+    def _ladder(self, reps: np.ndarray, view, cost: FrameCostModel, mirror: CacheMirror) -> Ladder:
         """The governor's ladder for the gated selection, over what the client holds after this delta."""
         cam = view.views[0] if isinstance(view, Interval) else view
         arrays = self._arrays(mirror)
         mesh = arrays["eligible"][reps]
-        return build_ladder(reps[mesh], None if algorithm is None else np.asarray(algorithm)[mesh], cam, cost,
-                            rep_vertices=self.scene.flat.rep_vertices, pixel_scale=self.pixel_scale, **arrays)
+        return build_ladder(reps[mesh], cam, cost, rep_vertices=self.scene.flat.rep_vertices,
+                            rep_error=self._ladder_errors(), **arrays)
 
     def _gate(self, reps: np.ndarray, algorithm, view, now: float, mirror: CacheMirror, delivery: Delivery):
         """The selection as the link allows it (``gate.through_gate``), with the send order per object: bytes

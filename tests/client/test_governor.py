@@ -202,3 +202,82 @@ def test_on_a_machine_whose_frames_scatter_the_tail_holds_and_the_budget_is_spen
     quiet.take(world.ladder())
     frames(world, quiet, lambda i: scale, 200)
     assert quiet.steer == pytest.approx(quiet.aim)
+
+
+class ChainWorld:
+    """Objects with chains of steps: object i (key 10·i) selected at level 4, ``down[i]`` levels below it held
+    and ``up[i]`` above, each level's model seconds known; level 0 is the coarsest."""
+
+    def __init__(self, n: int, seed: int, overhead: float = 0.002):
+        rng = np.random.default_rng(seed)
+        self.key = np.arange(n, dtype=np.int64) * 10
+        self.level = np.full(n, 4.0)
+        self.down = rng.integers(0, 4, n)  # 0..3 levels below
+        self.up = rng.integers(0, 2, n)
+        # cost[i, j]: model seconds of object i at level j (0..5), rising with the level
+        self.cost = np.cumsum(rng.uniform(2e-5, 3e-4, (n, 6)), axis=1)
+        self.worth = np.cumsum(rng.uniform(0.1, 1.0, (n, 6))[:, ::-1], axis=1)[:, ::-1]  # gains shrink finer
+        self.overhead = overhead
+        self.base = overhead + float(self.cost[:, 4].sum())
+
+    def ladder(self, t0: float = 0.0) -> GovernorLadder:
+        keys, steps, costs, values, levels = [], [], [], [], []
+        for i in range(self.key.size):
+            for d in range(1, int(self.down[i]) + 1):  # the increment from level 4 − d to 4 − d + 1
+                c = self.cost[i, 5 - d] - self.cost[i, 4 - d]
+                keys.append(self.key[i]); steps.append(-d); costs.append(c); levels.append(4.0)
+                values.append((self.worth[i, 5 - d] - self.worth[i, 4 - d]) / c)
+            if self.up[i]:
+                c = self.cost[i, 5] - self.cost[i, 4]
+                keys.append(self.key[i]); steps.append(1); costs.append(c); levels.append(4.0)
+                values.append((self.worth[i, 5] - self.worth[i, 4]) / c)
+        return GovernorLadder.build(t0, np.array(keys, np.int64), np.array(steps, np.int64), np.array(costs),
+                                    np.array(values), self.base, np.array(levels))
+
+    def model_seconds(self, level: np.ndarray) -> float:
+        drawn = np.ceil(level - 1e-9).astype(np.int64)
+        return self.overhead + float(self.cost[np.arange(self.key.size), drawn].sum())
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(1, 200), seed=st.integers(0, 10_000), rate=st.floats(0.5, 6.0))
+def test_chains_of_steps_shed_down_to_the_coarsest_held_levels_and_hold_the_target(n, seed, rate):
+    """With chains deeper than one level and an exact model, the target holds once the prediction has a
+    frame and a ramp per level to get there (at most two levels per ramp), as long as the coarsest held
+    levels fit; each level stays within its chain and moves at most two levels per ramp."""
+    world = ChainWorld(n, seed)
+    lowest = world.level - world.down
+    coarsest = world.model_seconds(lowest)
+    if rate * coarsest > 0.95 * TARGET:
+        rate = 0.95 * TARGET / coarsest
+    gov = Governor(TARGET, ramp=0.1)
+    gov.take(world.ladder())
+    prev, spent = None, []
+    for i in range(60):
+        level = gov.apply(i * DT, world.key, world.level)
+        assert np.all(level >= lowest - 1e-9) and np.all(level <= world.level + world.up + 1e-9)
+        if prev is not None:
+            assert np.all(np.abs(level - prev) <= 2 * DT / gov.ramp + 1e-9)
+        prev = level
+        spent.append(rate * world.model_seconds(level))
+        gov.observe(spent[-1])
+    settle = 1 + int(np.ceil(2 * gov.ramp / DT)) + 1  # a frame to learn, then up to three levels in 0.2 s
+    assert max(spent[settle:]) <= TARGET * (1 + 1e-9), (max(spent[settle:]) / TARGET, rate * world.base / TARGET)
+
+
+def test_a_ladder_keeps_only_contiguous_chains_and_orders_each_chain_coarse_first():
+    key = np.array([10, 10, 10, 20, 20, 30], np.int64)
+    step = np.array([-1, -2, -4, -2, 1, 1])  # key 10 has a gap at depth 3; key 20 lacks depth 1 down
+    cost = np.full(6, 1e-3)
+    value = np.array([5.0, 1.0, 9.0, 3.0, 7.0, 2.0])  # not concave: the deeper step 10/−2 is worth less
+    lad = GovernorLadder.build(0.0, key, step, cost, value, 0.01, np.full(6, 3.0))
+    assert lad.key.tolist() == [10, 20, 30]
+    assert lad.n_down.tolist() == [2, 0, 0] and lad.pos.size == 4  # 10/−4 and 20/−2 are left out
+    assert lad.lo.tolist() == [1.0, 3.0, 3.0] and lad.hi.tolist() == [3.0, 4.0, 4.0]
+    # Whatever the prefix, key 10 goes down its chain in order: never level 2 without level 1's increment.
+    for m in range(lad.cum.size):
+        off = lad.offsets(m)
+        assert off[0] in (-2.0, -1.0, 0.0)
+    assert lad.offsets(0).tolist() == [-2.0, 0.0, 0.0] and lad.offsets(lad.pos.size).tolist() == [0.0, 1.0, 1.0]
+    assert lad.units(np.array([-2.0, 0.0, 0.0])) == pytest.approx(lad.fixed)
+    assert lad.units(np.array([-0.5, 0.0, 0.0])) == pytest.approx(lad.base)  # a key partly down draws its level

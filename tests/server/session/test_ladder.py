@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from proto.messages import Delta
+from proto.messages import LADDER_DEPTH, Delta
 
 from .test_pipeline import Link, scenes  # noqa: F401  (the fixture)
 
@@ -18,19 +18,25 @@ def test_each_delta_carries_a_ladder_over_what_the_client_holds(scenes):  # noqa
     deltas = [d for _, d in link.deltas]
     assert len(deltas) >= 6
     held = set()
-    ups = downs = 0
+    ups = downs = deep = 0
     for d in deltas:
         held |= {a.rep for a in d.add}
         held -= set(d.drop)
         rep, to = np.asarray(d.ladder_rep, np.int64), np.asarray(d.ladder_to, np.int64)
         assert set(rep.tolist()) <= set(d.selection)
-        assert np.all(np.abs(to - rep) == 1) and np.all(index.rep_object[to] == index.rep_object[rep])
+        depth = np.abs(to - rep)
+        assert np.all((depth >= 1) & (depth <= LADDER_DEPTH)) and np.all(index.rep_object[to] == index.rep_object[rep])
+        # Chains are contiguous: a step of depth d comes with the one of depth d − 1 on the same side.
+        steps = set(zip(rep.tolist(), (to - rep).tolist()))
+        assert all((r, s - np.sign(s)) in steps for r, s in steps if abs(s) > 1)
         assert set(to.tolist()) <= held  # a step only goes where the client holds the level
         assert np.all(np.diff(d.ladder_value) >= 0) and np.all(np.asarray(d.ladder_cost) > 0)
         assert d.ladder_base > 0
         ups += int((to > rep).sum())
         downs += int((to < rep).sum())
-    assert downs > 0 and ups > 0  # coarser levels held, finer ones sent ahead with the bytes left over
+        deep += int((to < rep - 1).sum())
+    # Coarser levels held (chains deeper than one level among them), finer ones sent ahead with the bytes left.
+    assert downs > 0 and ups > 0 and deep > 0
 
 
 def test_without_the_governor_no_ladder_is_sent(scenes):  # noqa: F811
@@ -41,7 +47,8 @@ def test_without_the_governor_no_ladder_is_sent(scenes):  # noqa: F811
 
 @pytest.mark.parametrize("bad", [
     dict(ladder_rep=[1], ladder_to=[2, 3], ladder_cost=[1e-4], ladder_value=[1.0]),  # columns differ
-    dict(ladder_rep=[1], ladder_to=[3], ladder_cost=[1e-4], ladder_value=[1.0]),  # not adjacent
+    dict(ladder_rep=[6], ladder_to=[6 + LADDER_DEPTH + 1], ladder_cost=[1e-4], ladder_value=[1.0]),  # too deep
+    dict(ladder_rep=[1], ladder_to=[1], ladder_cost=[1e-4], ladder_value=[1.0]),  # no step
     dict(ladder_rep=[5], ladder_to=[4], ladder_cost=[1e-4], ladder_value=[1.0]),  # not selected
     dict(ladder_rep=[1, 2], ladder_to=[0, 3], ladder_cost=[1e-4, 1e-4], ladder_value=[2.0, 1.0]),  # unordered
     dict(ladder_rep=[1], ladder_to=[0], ladder_cost=[float("nan")], ladder_value=[1.0]),  # not finite
@@ -51,6 +58,6 @@ def test_without_the_governor_no_ladder_is_sent(scenes):  # noqa: F811
 ])
 def test_the_protocol_refuses_a_malformed_ladder(bad):
     with pytest.raises(ValidationError):
-        Delta(seq=1, t0=0.0, t1=0.5, selection=[1, 2], **bad)
+        Delta(seq=1, t0=0.0, t1=0.5, selection=[1, 2, 6], **bad)
     Delta(seq=1, t0=0.0, t1=0.5, selection=[1, 2], ladder_rep=[1, 2], ladder_to=[0, 3], ladder_cost=[1e-4, 2e-4],
           ladder_value=[1.0, 2.0], ladder_base=0.01)

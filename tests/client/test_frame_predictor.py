@@ -1,0 +1,65 @@
+"""The governor's frame-time predictor: the time per unit drawn, and the same with the frame's fixed part."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from client.frame_predictor import FramePredictor
+
+
+def _feed(pred: FramePredictor, units: np.ndarray, time: np.ndarray) -> None:
+    for u, t in zip(units, time):
+        pred.observe(float(t), float(u))
+
+
+def test_a_fixed_part_is_found_and_used_when_it_predicts_better():
+    rng = np.random.default_rng(1)
+    units = rng.uniform(0.01, 0.04, 120)  # the governor's steps move the units drawn
+    time = 1.3 * (0.02 + units) * rng.lognormal(0.0, 0.02, units.size)
+    pred = FramePredictor()
+    _feed(pred, units, time)
+    report = pred.report()
+    assert pred.chosen == "offset" and report["offset_error"] < 0.7 * report["ratio_error"]
+    assert pred.alpha == pytest.approx(0.02, rel=0.2)
+    # The units a 50 ms frame may draw, as the machine draws them.
+    fits = pred.units_for(0.05)
+    assert 1.3 * (0.02 + fits) == pytest.approx(0.05, rel=0.05)
+
+
+def test_frames_proportional_to_the_units_keep_the_simplest_predictor():
+    rng = np.random.default_rng(2)
+    units = rng.uniform(0.01, 0.04, 120)
+    time = 1.1 * units * rng.lognormal(0.0, 0.02, units.size)
+    pred = FramePredictor()
+    _feed(pred, units, time)
+    assert pred.chosen == "ratio" and pred.alpha == 0.0
+    assert pred.predict(0.03) == pytest.approx(0.033, rel=0.05)
+
+
+def test_units_that_do_not_vary_tell_nothing_about_a_fixed_part():
+    pred = FramePredictor()
+    _feed(pred, np.full(80, 0.03), np.full(80, 0.045))
+    assert pred.report()["offset_alpha"] == 0.0 and pred.chosen == "ratio"
+
+
+def test_a_machine_twice_slower_is_followed_after_two_frames():
+    rng = np.random.default_rng(3)
+    units = rng.uniform(0.01, 0.04, 100)
+    speed = np.where(np.arange(units.size) < 60, 1.0, 2.0)
+    time = speed * (0.015 + units)
+    pred = FramePredictor()
+    for i, (u, t) in enumerate(zip(units, time)):
+        if i in (61, 62):  # one slow frame alone does not move it ...
+            guess = pred.predict(u)
+            assert guess is not None and (guess / t < 0.75 if i == 61 else abs(guess / t - 1) < 0.05), (i, guess / t)
+        pred.observe(float(t), float(u))  # ... two in a row do
+
+
+@pytest.mark.parametrize("time, units", [(float("nan"), 0.02), (0.03, 0.0), (-1.0, 0.02), (0.03, float("inf"))])
+def test_frames_that_say_nothing_are_ignored(time, units):
+    pred = FramePredictor()
+    pred.observe(time, units)
+    assert pred.rate is None and pred.predict(0.02) is None and pred.units_for(0.05) is None
+    with pytest.raises(ValueError):
+        FramePredictor(window=4)
