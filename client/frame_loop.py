@@ -216,7 +216,9 @@ class FrameLoop:
 
     def _ladder(self, delta: Delta) -> None:
         """Give the governor the delta's ladder, over the steps whose both ends the cache holds (a chain stops at
-        a level it lacks), and make the finer end of each a morph target so a step is drawn as a geomorph."""
+        a level it lacks). The morph targets a step needs are made when the governor first draws it
+        (``governed``): most steps of a ladder are never taken, and making them all would stall the frame
+        loop on every delta."""
         rep = np.asarray(delta.ladder_rep, np.int64)
         to = np.asarray(delta.ladder_to, np.int64)
         held = self.cache.holds(rep) & self.cache.holds(to)
@@ -232,12 +234,6 @@ class FrameLoop:
         key = reps - levels.astype(np.int64)
         self.governor.take(GovernorLadder.build(delta.t0, key, to - rep, cost, value, delta.ladder_base, levels),
                            reset=delta.reset or delta.start is None)
-        # The finer end of each unit step morphs onto the coarser one: its morph target.
-        for fine in np.unique(np.where(to < rep, to + 1, to)).tolist():
-            if not self.renderer.has_morph_target(fine):
-                targets = self.cache.morph_targets(fine)
-                if targets is not None:
-                    self.renderer.set_morph_target(fine, targets)
 
     def governed(self, t: float, d: Drawn) -> Drawn:
         """The schedule's rows with the governor's levels, where what they draw is resident (else as planned)."""

@@ -61,6 +61,13 @@ class Ladder:
     def __len__(self) -> int:
         return int(self.rep.size)
 
+    @property
+    def shed(self) -> float:
+        """The share of the selection's model seconds its steps down can save: how far the governor reaches."""
+        if self.base <= 0:
+            return 0.0
+        return float(np.clip(self.cost[self.to < self.rep].sum() / self.base, 0.0, 1.0))
+
     @classmethod
     def empty(cls, base: float = 0.0) -> "Ladder":
         z = np.zeros(0)

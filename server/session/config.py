@@ -56,6 +56,9 @@ class SessionConfig:
     bandwidth : the link's first guess, bytes/s, until acks of large deltas measure it
     link_share : share of the measured bandwidth × τ one delta's new representations may take (the rest is
         headroom for morph intermediates, pings and estimation error); what is still in flight counts against it
+    ahead_share : with the governor, the levels sent ahead for its ladder (``select.ladder.prefetch``) take at
+        most this share of the bytes the selection's own adds take (plus ``ahead_floor`` bytes): every byte
+        sent is a byte the client decodes and uploads between frames, so the link's headroom is not the limit
     cost_model : "online" — F&S's coefficients fitted to the frame reports by robust recursive least
         squares, the simplest adequate model chosen (``select.cost_online``); "zach" — the running
         c_vertex average alone (Zach 2002, 4.2), for comparison
@@ -77,6 +80,8 @@ class SessionConfig:
     factors: BenefitFactors | None = None
     cost_model: str = "online"
     link_share: float = 0.8
+    ahead_share: float = 0.5
+    ahead_floor: int = 64 * 1024
     budget_quantile: float = 0.95
     observe_hz: float = 20.0
     bandwidth: float = 10.0e6
@@ -84,5 +89,8 @@ class SessionConfig:
     def __post_init__(self) -> None:
         if not self.observe_hz > 0:
             raise ValueError(f"observe_hz must be positive, got {self.observe_hz}")
+        if not (self.ahead_share >= 0 and self.ahead_floor >= 0):
+            raise ValueError(f"ahead_share and ahead_floor must be non-negative, got {self.ahead_share}, "
+                             f"{self.ahead_floor}")
         if self.cost_model not in ("online", "zach"):
             raise ValueError(f"cost_model must be 'online' or 'zach', got {self.cost_model!r}")

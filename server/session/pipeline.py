@@ -42,7 +42,7 @@ class Pipeline:
     #: The fields a snapshot holds (among the session's fields), by their snapshot names.
     STATE = {"_pixel_scale": "pixel_scale"}
     #: ... and those that may come and go with the streaming code (a snapshot without them still loads).
-    OPTIONAL = {"deferred": "deferred", "fallbacks": "fallbacks"}
+    OPTIONAL = {"deferred": "deferred", "fallbacks": "fallbacks", "ladder_shed": "shed"}
 
     def __init__(self, config) -> None:
         self.config = config
@@ -62,6 +62,7 @@ class Pipeline:
         self.last_gate: dict = {}
         self.last_tail = 1.0  # the budget's tail ratio at the last selection
         self.ladder_to = np.zeros(0, np.int64)  # where the last delta's ladder steps go (kept resident)
+        self.shed = 0.0  # the share of its selection the last ladder's steps down could save
         self.deferred = 0  # choices that waited for bytes
         self.fallbacks = 0  # ... and were drawn coarser meanwhile
 
@@ -115,9 +116,11 @@ class Pipeline:
         # predicted ratio at that quantile shrinks what the selection may spend.
         tail = cost.tail_ratio(config.budget_quantile) if config.budget_quantile > 0 else 1.0
         if hello.governor:
-            # The client's governor holds each frame to the target: the mean frame is budgeted, the tail
-            # ratio only caps how far the model's median error may shrink it.
-            tail = min(cost.tail_ratio(0.5), tail)
+            # The client's governor holds each frame to the target by stepping down its ladder: the mean frame
+            # is budgeted, as far as the governor can reach. Its steps down save a share ``shed`` of the
+            # selection (the last ladder's), so the tail frame still fits when (1 − shed) × the selection at
+            # the tail ratio does; a scene whose objects have few coarser levels is budgeted as without it.
+            tail = min(max(cost.tail_ratio(0.5), tail * (1.0 - self.shed)), tail)
         self.last_tail = tail
         budget = max(hello.target_frame_time / tail - cost.overhead, 0.25 * hello.target_frame_time)
         # The only clock the selection sees: an anytime solver stops at select_limit with its best so far.
@@ -161,6 +164,7 @@ class Pipeline:
                                 np.concatenate([needed, groups, ahead, below, self.ladder_to]), seq)
         ladder = self._ladder(reps, view, cost, mirror) if hello.governor else Ladder.empty()
         self.ladder_to = ladder.to
+        self.shed = ladder.shed
         if new.size and rank is not None:
             # Best benefit per byte first (a chain's intermediates with their target, coarse before fine).
             order = rank[table.rep_object[new]]
@@ -205,9 +209,12 @@ class Pipeline:
                     object_hi=table.object_hi, resident=mirror.resident, eligible=~table.rep_trees)
 
     def _ahead(self, reps: np.ndarray, view, mirror: CacheMirror) -> np.ndarray:
-        """Finer levels of the selection sent ahead for the governor's steps up, with the bytes the gate left."""
-        gate = self.last_gate
-        left = max(float(gate.get("budget", gate.get("link", 0.0))) - float(gate.get("bytes", 0)), 0.0)
+        """Neighbouring levels of the selection sent ahead for the governor's steps, with the bytes the gate left
+        (at most ``ahead_share`` of what the selection's adds take, plus ``ahead_floor``)."""
+        gate, config = self.last_gate, self.config
+        used = float(gate.get("bytes", 0))
+        left = max(float(gate.get("budget", gate.get("link", 0.0))) - used, 0.0)
+        left = min(left, config.ahead_share * used + config.ahead_floor)
         cam = view.views[0] if isinstance(view, Interval) else view
         return prefetch(reps, cam, rep_bytes=self.table.rep_bytes, left=left, rep_error=self._ladder_errors(),
                         **self._arrays(mirror))
