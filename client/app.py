@@ -30,6 +30,7 @@ from proto.messages import ALGORITHMS, PROTOCOL_VERSION, Error, Hello
 
 from .connection import Arrived, Item, Link, Redialled, open_patiently, with_client
 from .frame_loop import FrameLoop, quiet_collector, run_frames
+from .calibrate import renderer_c_vertex
 from .governor import Governor
 from .navigation import Navigator, Tour
 from .records import ClientRun, FrameRecord
@@ -67,6 +68,7 @@ def run_client(
     silence_timeout: float | None = 10.0,
     tour: "Sequence[dict] | None" = None,
     governor: bool = True,
+    calibrate: bool = True,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
@@ -89,6 +91,8 @@ def run_client(
     tour the server's welcome carries: evaluations drive the camera along paths of their own.
     ``governor`` (on by default) asks for the delta's ladder and corrects the selection every
     frame to hold ``target_frame_time`` (``client.governor``); off, the server's plan is drawn as it is.
+    ``calibrate`` measures the renderer's seconds per vertex before the hello (``client.calibrate``), the
+    server's first guess for its cost model.
     Raises ``client.connection.ClientError`` if the session cannot be opened, ``client.window.WindowError``
     if the window cannot.
     """
@@ -128,7 +132,8 @@ def run_client(
         hello = Hello(
             protocol=PROTOCOL_VERSION, scene=scene, viewport=[width, height], fov_y=fov_y,
             target_frame_time=target_frame_time, solver=solver, client=CLIENT_NAME, predict=predict, morph=morph,
-            algorithms=list(algorithms), cache_bytes=cache_bytes, governor=governor, **limits,
+            algorithms=list(algorithms), cache_bytes=cache_bytes, governor=governor,
+            c_vertex=renderer_c_vertex(renderer) if calibrate else None, **limits,
         )
         ws, welcome, nbytes, attempts = open_patiently(url, hello, timeout, max(0.0, reconnect_timeout))
         link = Link(url, hello, start, timeout=timeout, patience=reconnect_timeout, silence=silence_timeout)

@@ -148,8 +148,11 @@ class Hello(_Message):
     #: The server's mirror starts from it, so nothing held is sent again — on a resume or a fresh session.
     held: Annotated[bytes, Field(max_length=MAX_HELD_BYTES)] | None = None
     #: The client corrects the server's selection every frame along the delta's ladder (a frame governor);
-    #: the server then budgets the mean frame rather than the tail.
+    #: the server then budgets the mean frame rather than the tail, as far as the governor can reach.
     governor: bool = False
+    #: The client's own measure of its renderer's seconds per vertex (``client.calibrate``): the cost model's
+    #: first guess, until the frame reports have measured the machine; None: the server's default guess.
+    c_vertex: Annotated[float, Field(ge=1.0e-12, le=1.0e-3)] | None = None
 
     @model_validator(mode="after")
     def _distinct(self) -> "Hello":

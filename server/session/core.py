@@ -111,11 +111,16 @@ class Session:
     def _new_parts(self) -> tuple:
         """A fresh cost model, clock sync, delivery estimate, timer, pipeline and (empty) mirror."""
         c = self.config
-        cost: FrameCostModel = (CostModel(c_vertex=c.c_vertex, alpha=c.alpha) if c.cost_model == "zach" else
-                                OnlineCostModel(algorithms=len(ALGORITHMS), c_vertex=c.c_vertex))
-        return (cost, ClockSync(), Delivery(bandwidth=c.bandwidth),
+        return (self._cost_model(c.c_vertex), ClockSync(), Delivery(bandwidth=c.bandwidth),
                 Timing(c.tau, c.safety, c.select_limit, c.clock_wait), Pipeline(c),
                 CacheMirror(None, c.cache_bytes, self.id))
+
+    def _cost_model(self, c_vertex: float) -> FrameCostModel:
+        """A fresh cost model of the configured kind, its first guess ``c_vertex`` seconds per vertex."""
+        c = self.config
+        if c.cost_model == "zach":
+            return CostModel(c_vertex=c_vertex, alpha=c.alpha)
+        return OnlineCostModel(algorithms=len(ALGORITHMS), c_vertex=c_vertex)
 
     # ------------------------------------------------------------------ input
 
@@ -209,6 +214,10 @@ class Session:
         restored, self._restored = self._restored, None
         self.hello = hello
         self.scene_name = hello.scene
+        if not resumed and hello.c_vertex is not None:
+            # The client measured its renderer: a better first guess than the server's (a resumed session
+            # keeps the model it has learnt).
+            self.cost = self._cost_model(hello.c_vertex)
         # The budget's tail is that of frames the budget is about: a near-empty view's frame far over its
         # prediction (the overhead's noise) says nothing of how a frame at the target strays.
         self.cost.tail_min_time = TAIL_MIN_SHARE * hello.target_frame_time

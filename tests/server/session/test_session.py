@@ -7,6 +7,7 @@ from time import perf_counter
 import msgpack
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from proto import PROTOCOL_VERSION
 from proto.codec import decode_server, encode
@@ -274,3 +275,21 @@ def test_malformed_frame_report_terms_harm_nothing(scenes, terms, gpu):
                        terms={"triangles": [10_000, 0, 0], "vertices": [6_000, 0, 0], "pixels": [5_000, 0, 0],
                               "draws": [10, 0, 0]})
     assert s.receive(encode(good), now=0.2) == [] and s.cost.frames == 1 and s.frames == 1
+
+
+def test_the_clients_own_measure_of_a_vertex_is_the_cost_models_first_guess(scenes):
+    """A hello's ``c_vertex`` (the client's calibration) replaces the server's guess for the first selection:
+    a client that says its vertices cost 5 × the default gets a first delta of about a fifth of the vertices."""
+    guessed = _open(scenes)
+    measured = _open(scenes, c_vertex=5 * SessionConfig().c_vertex)
+    assert measured.cost.c_vertex == pytest.approx(5 * SessionConfig().c_vertex)
+    assert guessed.cost.c_vertex == pytest.approx(SessionConfig().c_vertex)
+    index = next(iter(scenes.values())).index
+    drawn = []
+    for s in (guessed, measured):
+        s.receive(_camera(scenes), now=0.0)
+        delta = _next_delta(s)
+        drawn.append(int(index.rep_vertices[np.asarray(delta.selection, np.int64)].sum()))
+    assert drawn[1] < 0.4 * drawn[0], drawn
+    with pytest.raises(ValidationError, match="c_vertex"):
+        Hello(protocol=PROTOCOL_VERSION, scene="demo", viewport=[64, 64], c_vertex=1.0)  # a second a vertex
