@@ -27,7 +27,7 @@ from websockets.sync.client import ClientConnection
 
 from proto.camera import NEAR, far_plane
 from proto.codec import encode
-from proto.messages import Ack, AlgorithmTerms, Camera, Delta, Error, FrameReport, Welcome
+from proto.messages import MAX_LADDER_VERTICES, Ack, AlgorithmTerms, Camera, Delta, Error, FrameReport, Welcome
 
 from .cache import ResidentCache
 from .connection import Arrived, Closed, GaveUp, Item, Link, Redialled
@@ -388,7 +388,7 @@ def run_frames(
             cpu_time=min(stats.cpu_time, 60.0),
             terms=None if terms is None else AlgorithmTerms(
                 triangles=terms.triangles, vertices=terms.vertices, pixels=terms.pixels, draws=terms.draws),
-            governor_down=drew[0], governor_up=drew[1], governor_cost=min(max(drew[2], 0.0), 3600.0),
+            governor_down=drew[0], governor_up=drew[1], governor_cost=min(max(drew[2], 0.0), MAX_LADDER_VERTICES),
         ))
         last = loop.last
         record = FrameRecord(

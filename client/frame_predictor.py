@@ -1,10 +1,9 @@
-"""The frame governor's prediction of a frame's time from the model units it draws.
+"""The frame governor's prediction of a frame's time from the units it draws (the ladder's: vertices).
 
 A frame costs a part no ladder step changes — clearing and finishing the frame,
 the draws, the pixels, the objects without steps — and a part that grows with
-the geometry the steps add. In units of the server's model seconds (what the
-ladder prices), t = s · (α + U): s the machine's seconds per unit now, α the
-fixed part in units.
+the geometry the steps add. In the ladder's units (vertices), t = s · (α + U):
+s the machine's seconds per unit now, α the fixed part in units.
 
 - s follows the machine at once: the median of the last three frames'
   t / (α + U), so one slow frame alone does not move it and two in a row do.
@@ -57,7 +56,7 @@ class _Track:
 
 
 class FramePredictor:
-    """Seconds of a frame that draws ``U`` model units: the ratio predictor, or the one with a fixed part.
+    """Seconds of a frame that draws ``U`` units: the ratio predictor, or the one with a fixed part.
 
     window : frames the fixed part is fitted over and the errors are scored over
     margin : the fitted predictor is used only when its mean held-out error is below this × the ratio's

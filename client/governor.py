@@ -6,7 +6,7 @@ its own frames exactly and at once, so it corrects the plan every frame, F&S's
 incremental step run locally: each delta's ladder (``server.select.ladder``)
 offers, per selected object, a chain of unit steps down through the coarser
 levels it holds and up through the finer ones sent ahead, each with its cost
-change (model seconds) and its value (benefit per second). The steps, sorted by
+change (vertices) and its value (benefit per vertex). The steps, sorted by
 value (values are made concave along each chain, so a finer increment never
 comes before a coarser one of the same object), form one list; a state is a
 prefix of it. Each frame the governor predicts the frame's time from the model
@@ -53,11 +53,11 @@ class GovernorLadder:
     t0 : client time from which it governs (the delta's switch)
     key : (n,) sorted unique object keys with at least one step
     n_down : (n,) steps down each key offers (its chain's depth below the selected level)
-    step_key : (k,) the key index of each step; pos : (k,) its place in its chain (above); cost : (k,) model seconds
+    step_key : (k,) the key index of each step; pos : (k,) its place in its chain (above); cost : (k,) vertices
     rank : (k,) its place among all steps, highest value first
     cum : (k + 1,) running cost of the steps in that order (cum[m]: the first m taken)
-    fixed : model seconds of the all-coarse state (the selection less every step down)
-    base : model seconds of the selection as planned
+    fixed : vertices of the all-coarse state (the selection less every step down)
+    base : vertices of the selection as planned
     lo, hi : (n,) the levels the key's steps reach (its selected level less its steps down, plus its steps up)
     """
 
@@ -133,7 +133,7 @@ class GovernorLadder:
         return got
 
     def units(self, g: np.ndarray) -> float:
-        """Model seconds of drawing each key at offset ``g`` (n,) from the plan: a key partly down still draws
+        """Units (vertices) of drawing each key at offset ``g`` (n,) from the plan: a key partly down still draws
         its finer level, so a step's increment counts while the drawn level (``ceil``) is at or above it."""
         drawn = np.ceil(g - 1e-9)
         return self.fixed + float(self.cost[self.pos <= drawn[self.step_key]].sum())
@@ -171,7 +171,7 @@ class Governor:
         self.ladder: GovernorLadder | None = None
         self.m = 0
         self.predictor = FramePredictor()  # a frame's seconds from the units it draws, measured here
-        self.units = 0.0  # model seconds of what the last ``apply`` drew
+        self.units = 0.0  # vertices (the ladder's units) of what the last ``apply`` drew
         self.predicted = 0.0  # its predicted time
         self.down = self.up = 0  # objects the last ``apply`` drew coarser / finer than the plan
         self.gkey = np.zeros(0, np.int64)  # keys with an offset, sorted
@@ -232,7 +232,7 @@ class Governor:
         """The number of steps to take: shrink to the aim when the prediction is above its band, grow to it
         when below (and no decrement is still ramping), else stay."""
         aim = self.steer * self.target
-        fits = self.predictor.units_for(aim)  # model seconds a frame at the aim may draw
+        fits = self.predictor.units_for(aim)  # units a frame at the aim may draw
         if fits is None:
             return self.m
         cum, m = lad.cum, min(self.m, lad.cum.size - 1)

@@ -47,7 +47,7 @@ class FrameRecord:
     compute: float = 0.0  # the server's selection time of the latest delta applied (s)
     governor_down: int = 0  # objects the frame governor drew coarser than the selection
     governor_up: int = 0  # ... and finer
-    governor_cost: float = 0.0  # model seconds of what it drew (0: no governor)
+    governor_cost: float = 0.0  # vertices of what it drew, as the ladder counts them (0: no governor)
     governor_predicted: float = 0.0  # the time it predicted for the frame (s; 0: no prediction yet)
 
 

@@ -56,6 +56,8 @@ MAX_COORD = 1.0e7
 MAX_LIST = 1 << 20
 #: Levels a governor ladder's chain of steps reaches from the selected level, either way.
 LADDER_DEPTH = 4
+#: Vertices a ladder counts at most (a selection, or a frame the governor draws).
+MAX_LADDER_VERTICES = 1.0e12
 
 Coord = Annotated[float, Field(ge=-MAX_COORD, le=MAX_COORD)]
 Vec3 = Annotated[list[Coord], Field(min_length=3, max_length=3)]
@@ -232,11 +234,11 @@ class FrameReport(_Message):
     cpu_time: Annotated[float, Field(ge=0.0, le=60.0)] = 0.0
     #: The same work split by rendering algorithm (None: all of it flat)
     terms: AlgorithmTerms | None = None
-    #: What the frame governor drew: objects drawn coarser and finer than the selection, and the drawn
-    #: selection's cost in the delta's model seconds (``Delta.ladder_base`` plus its steps; 0: no governor)
+    #: What the frame governor drew: objects drawn coarser and finer than the selection, and the vertices of
+    #: the drawn selection as the ladder counts them (``Delta.ladder_base`` and its steps; 0: no governor)
     governor_down: Count = 0
     governor_up: Count = 0
-    governor_cost: Annotated[float, Field(ge=0.0, le=3600.0)] = 0.0
+    governor_cost: Annotated[float, Field(ge=0.0, le=MAX_LADDER_VERTICES)] = 0.0
 
 
 # --------------------------------------------------------------------------- server → client
@@ -355,13 +357,14 @@ class Delta(_Message):
     ramps: Morphs = Morphs()
     #: The frame governor's ladder (``server.select.ladder``), lowest value first: a unit step of the chain of
     #: the selected ``ladder_rep`` that reaches level ``ladder_to`` (d = |ladder_to − ladder_rep| ≤ LADDER_DEPTH
-    #: levels away, from the level one nearer) saves (down) or spends (up) ``ladder_cost`` model seconds for a
-    #: benefit change of ``ladder_value`` per second; ``ladder_base`` is the selection's cost.
+    #: levels away, from the level one nearer) removes (down) or adds (up) ``ladder_cost`` vertices for a
+    #: benefit change of ``ladder_value`` per vertex; ``ladder_base`` is the selection's vertices. The client
+    #: measures what a vertex costs it.
     ladder_rep: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
     ladder_to: Annotated[list[Id], Field(max_length=MAX_LIST)] = []
-    ladder_cost: Annotated[list[Annotated[float, Field(gt=0.0, le=60.0)]], Field(max_length=MAX_LIST)] = []
+    ladder_cost: Annotated[list[Annotated[float, Field(gt=0.0, le=MAX_LADDER_VERTICES)]], Field(max_length=MAX_LIST)] = []
     ladder_value: Annotated[list[Annotated[float, Field(ge=0.0, le=1.0e12)]], Field(max_length=MAX_LIST)] = []
-    ladder_base: Annotated[float, Field(ge=0.0, le=3600.0)] = 0.0
+    ladder_base: Annotated[float, Field(ge=0.0, le=MAX_LADDER_VERTICES)] = 0.0
 
     @model_validator(mode="after")
     def _interval(self) -> "Delta":

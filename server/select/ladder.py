@@ -1,4 +1,4 @@
-"""The governor's ladder: what each selected object's neighbouring levels are worth, per second of frame time.
+"""The governor's ladder: what each selected object's neighbouring levels are worth, per vertex drawn.
 
 The server's selection is a plan for an interval that starts a round trip
 later; the client's frame governor (``client.governor``) corrects it every frame
@@ -6,9 +6,9 @@ along this ladder. For each selected mesh the ladder offers chains of unit steps
 down through the coarser levels the client holds (as far as they are contiguous,
 up to ``LADDER_DEPTH``), and up through the finer ones it holds or is sent ahead
 (``prefetch``). A step of depth d goes from level L ∓ (d − 1) to L ∓ d; it
-carries its cost change (model seconds: the vertices it adds or removes at the
-cost model's effective price per vertex) and its value, the benefit change per second (F&S's
-Value = Benefit ÷ Cost of an increment), so the client can take decrements of
+carries its cost change (the vertices it adds or removes) and its value, the
+benefit change per vertex (F&S's Value = Benefit ÷ Cost of an increment, the
+client measuring what a vertex costs), so the client can take decrements of
 lowest value and increments of highest value, F&S's incremental step, without
 knowing the scene. Chains deeper than one level matter where the plan meets a
 machine or a view heavier than the server foresaw: one level down saves a
@@ -34,8 +34,9 @@ from .camera import screen_size
 
 __all__ = ["Ladder", "LADDER_DEPTH", "MAX_VALUE", "MIN_COST", "build_ladder", "held_chain", "prefetch", "step_gain"]
 
-#: A step's cost change is at least this (s): a fill-bound object's levels cost the same, and a value must be finite.
-MIN_COST = 1.0e-7
+#: A step changes at least this many vertices (a level may keep its vertex count while it drops faces), so a
+#: value is finite.
+MIN_COST = 1.0
 #: Values above this are this (a step whose benefit comes at no measurable cost).
 MAX_VALUE = 1.0e12
 
@@ -47,9 +48,9 @@ class Ladder:
     rep : (k,) int64 the selected representation whose chain a step belongs to
     to  : (k,) int64 the level the step reaches (``rep ∓ d`` for a step of depth d: the steps of one chain are
         contiguous, each one level beyond the one before)
-    cost : (k,) float64 model seconds the step saves (down) or spends (up), > 0
-    value : (k,) float64 benefit change per second of the step, ≥ 0
-    base : model seconds of the selection as drawn (with the model's fixed per-frame cost)
+    cost : (k,) float64 vertices the step removes (down) or adds (up), > 0
+    value : (k,) float64 benefit change per vertex of the step, ≥ 0
+    base : vertices of the selection as drawn
     """
 
     rep: np.ndarray
@@ -63,7 +64,7 @@ class Ladder:
 
     @property
     def shed(self) -> float:
-        """The share of the selection's model seconds its steps down can save: how far the governor reaches."""
+        """The share of the selection's vertices its steps down can remove: how far the governor reaches."""
         if self.base <= 0:
             return 0.0
         return float(np.clip(self.cost[self.to < self.rep].sum() / self.base, 0.0, 1.0))
@@ -110,36 +111,34 @@ def held_chain(reps: np.ndarray, sign: int, *, rep_object: np.ndarray, resident:
     return out
 
 
-def build_ladder(reps: np.ndarray, cam, cost, *, rep_object: np.ndarray, rep_faces: np.ndarray,
+def build_ladder(reps: np.ndarray, cam, *, rep_object: np.ndarray, rep_faces: np.ndarray,
                  rep_vertices: np.ndarray, object_lo: np.ndarray, object_hi: np.ndarray, resident: np.ndarray,
                  eligible: np.ndarray, rep_error: np.ndarray | None = None, depth: int = LADDER_DEPTH) -> Ladder:
     """The ladder of the selection ``reps`` (s,) seen from ``cam``.
 
-    cost : the session's ``FrameCostModel``; resident : (m,) bool what the client holds after this delta
-    (adds included); eligible : (m,) bool representations a step may start from or go to (meshes);
-    rep_error : (m,) geometric errors for screen-space error accuracy, or None (F&S's samples).
+    resident : (m,) bool what the client holds after this delta (adds included); eligible : (m,) bool
+    representations a step may start from or go to (meshes); rep_error : (m,) geometric errors for
+    screen-space error accuracy, or None (F&S's samples).
 
-    A step is priced by the vertices it adds or removes, at the model's effective seconds per vertex: a step
-    changes an object's geometry and nothing else (its draw, its pixels stay), and a model fitted on frames
-    whose vertices and draws rose and fell together may put the frame's time into its draws — pricing the
-    steps at nothing, so the governor would see nothing to shed. What the units cost on the client's
-    machine, fixed part included, the governor measures itself.
+    A step is priced by the vertices it removes or adds, and nothing else: a step changes an object's
+    geometry, not its draw or its pixels. What a vertex costs the client's machine — with the frame's fixed
+    part — the client measures itself, frame by frame; priced in the cost model's seconds, each delta would
+    carry the model's latest estimate, and the client's measure would be off at every switch to a new one.
     """
     reps = np.asarray(reps, np.int64)
     obj = rep_object[reps]
     lo, hi = object_lo[obj], object_hi[obj]
     size = screen_size(lo, hi, cam.matrix(), cam.width, cam.height)
     extent = np.linalg.norm(hi.astype(np.float64) - lo, axis=1)
-    per_vertex = max(float(cost.c_vertex), MIN_COST * 1e-3)
-    here = per_vertex * rep_vertices[reps].astype(np.float64)
-    base = float(here.sum()) + float(cost.overhead)
+    here = rep_vertices[reps].astype(np.float64)
+    base = float(here.sum())
     worth = _worth(reps, size, extent, rep_faces, rep_error)
     cols = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))]
     for sign in (-1, 1):
         prev_cost, prev_worth = here.copy(), worth.copy()
         for rows, to in held_chain(reps, sign, rep_object=rep_object, resident=resident, eligible=eligible,
                                    depth=depth):
-            there = per_vertex * rep_vertices[to].astype(np.float64)
+            there = rep_vertices[to].astype(np.float64)
             w = _worth(to, size[rows], extent[rows], rep_faces, rep_error)
             dc = np.maximum(sign * (there - prev_cost[rows]), MIN_COST)
             db = np.abs(w - prev_worth[rows])

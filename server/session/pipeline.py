@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from proto.messages import ALGORITHMS, Delta, FrameReport, ModelAdd, Morphs, RepresentationAdd
+from proto.messages import ALGORITHMS, MAX_LADDER_VERTICES, Delta, FrameReport, ModelAdd, Morphs, RepresentationAdd
 
 from ..clock import Delivery
 from ..select.cost import FrameCostModel
@@ -162,7 +162,7 @@ class Pipeline:
         # The previous ladder governs until this delta's switch, and its steps ramp back after: kept too.
         new, drop = mirror.plan(np.concatenate([reps, drawn_groups]),
                                 np.concatenate([needed, groups, ahead, below, self.ladder_to]), seq)
-        ladder = self._ladder(reps, view, cost, mirror) if hello.governor else Ladder.empty()
+        ladder = self._ladder(reps, view, mirror) if hello.governor else Ladder.empty()
         self.ladder_to = ladder.to
         self.shed = ladder.shed
         if new.size and rank is not None:
@@ -197,9 +197,9 @@ class Pipeline:
             ramps=ramps,
             ladder_rep=ladder.rep.tolist(),
             ladder_to=ladder.to.tolist(),
-            ladder_cost=np.minimum(ladder.cost, 60.0).tolist(),
+            ladder_cost=np.minimum(ladder.cost, MAX_LADDER_VERTICES).tolist(),
             ladder_value=ladder.value.tolist(),
-            ladder_base=min(ladder.base, 3600.0),
+            ladder_base=min(ladder.base, MAX_LADDER_VERTICES),
         )
         return delta, nbytes, took
 
@@ -226,12 +226,12 @@ class Pipeline:
         factors = resolved_accuracy(self.config.factors or DEFAULT_FACTORS, errors=flat.rep_error is not None)
         return flat.rep_error if factors.accuracy == "sse" else None
 
-    def _ladder(self, reps: np.ndarray, view, cost: FrameCostModel, mirror: CacheMirror) -> Ladder:
+    def _ladder(self, reps: np.ndarray, view, mirror: CacheMirror) -> Ladder:
         """The governor's ladder for the gated selection, over what the client holds after this delta."""
         cam = view.views[0] if isinstance(view, Interval) else view
         arrays = self._arrays(mirror)
         mesh = arrays["eligible"][reps]
-        return build_ladder(reps[mesh], cam, cost, rep_vertices=self.scene.flat.rep_vertices,
+        return build_ladder(reps[mesh], cam, rep_vertices=self.scene.flat.rep_vertices,
                             rep_error=self._ladder_errors(), **arrays)
 
     def _gate(self, reps: np.ndarray, algorithm, view, now: float, mirror: CacheMirror, delivery: Delivery):

@@ -7,7 +7,6 @@ import pytest
 
 from proto.messages import LADDER_DEPTH
 from server.select.camera import View
-from server.select.cost import CostModel
 from server.select.ladder import build_ladder, held_chain, prefetch
 
 #: Three objects of 6 levels each (reps 0–5, 6–11, 12–17), coarsest first; vertices double per level.
@@ -27,21 +26,20 @@ def _arrays(resident):
                 resident=resident, eligible=np.ones(N * K, bool))
 
 
-def test_chains_reach_down_through_held_levels_only_and_steps_are_priced_by_vertices():
+def test_chains_reach_down_through_held_levels_only_and_steps_are_counted_in_vertices():
     resident = np.zeros(N * K, bool)
     resident[[1, 2, 3, 4]] = True  # object 0 at level 4: levels 1–3 held below, none above
     resident[[8, 10, 11]] = True  # object 1 at level 4 (rep 10): level 3 (rep 9) missing, level 5 held
     resident[[12]] = True  # object 2 at its coarsest
-    # A model whose per-draw cost dwarfs its per-vertex one (fitted on frames where both rose together).
-    cost = CostModel(c_vertex=1e-7, c_vert=[1e-12] * 3, c_draw=2e-3)
-    lad = build_ladder(np.array([4, 10, 12]), CAM, cost, rep_error=REP_ERROR, **_arrays(resident))
+    lad = build_ladder(np.array([4, 10, 12]), CAM, rep_error=REP_ERROR, **_arrays(resident))
     steps = sorted(zip(lad.rep.tolist(), lad.to.tolist()))
     assert steps == [(4, 1), (4, 2), (4, 3), (10, 11)]  # object 1's chain down stops at its gap
-    # Each unit step costs its vertices at the model's effective price per vertex, not its draw's.
+    # Each unit step costs the vertices it removes or adds; the client measures what a vertex costs.
     for r, t, c in zip(lad.rep, lad.to, lad.cost):
         finer, coarser = (t + 1, t) if t < r else (t, t - 1)
-        assert c == pytest.approx(cost.c_vertex * (REP_VERTICES[finer] - REP_VERTICES[coarser]))
-    assert lad.base == pytest.approx(cost.c_vertex * REP_VERTICES[[4, 10, 12]].sum())
+        assert c == REP_VERTICES[finer] - REP_VERTICES[coarser]
+    assert lad.base == REP_VERTICES[[4, 10, 12]].sum()
+    assert lad.shed == pytest.approx((REP_VERTICES[4] - REP_VERTICES[1]) / lad.base)
     assert np.all(np.diff(lad.value) >= 0) and np.all(lad.value >= 0)
     # Coarser steps of one chain lose more accuracy per vertex saved: the governor sheds them last.
     down = {t: v for r, t, v in zip(lad.rep, lad.to, lad.value) if r == 4}
