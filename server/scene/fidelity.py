@@ -3,14 +3,21 @@
 Three measures of a level against the object's finest level, made at build
 time for every coarse level and HLOD proxy:
 
-- **area ratio** — the level's surface area over the finest level's. Quadric
+- **area ratio** — the level's exposed surface area over the finest level's
+  (``surface.exposed_area``: the surface outside every other shell, so a
+  window frame sunk into a wall counts its face, not its buried back). Quadric
   decimation of a closed, box-like building collapses its walls first; what is
   left are roof slabs with a fraction of the area. Meaningful for closed meshes.
 - **silhouette IoU** — intersection over union of the two rendered coverage
   masks, from the six axis directions (orthographic, in the finest level's box,
   ``MASK`` × ``MASK`` pixels). Under orthographic projection the masks from
   +a and −a are mirror images, so three renders give all six; the reported
-  value is the least of them (the worst direction).
+  value is the least of them (the worst direction). An object fills its masks
+  and they are binary; an HLOD proxy stands for many objects, each a few of its
+  pixels, where a binary mask's half-pixel rounding would dominate the measure,
+  so its masks hold each pixel's covered fraction (``samples`` × ``samples``
+  points a pixel, as an antialiased render shows it) and the IoU is their
+  weighted form, Σ min / Σ max (which is the plain IoU for binary masks).
 - **FLIP** (Andersson et al. 2020, ``flip_evaluator``) of a shaded render of the
   level against one of the finest level, at the level's *switching distance*:
   where its geometric error projects to ``PIXEL_ERROR`` pixels on a
@@ -35,8 +42,10 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
+from .surface import exposed_area, is_closed, surface_area
+
 __all__ = ["Bounds", "Fidelity", "Reference", "reference", "measure", "surface_area", "is_closed",
-           "silhouettes", "silhouette_iou", "shaded", "MASK"]
+           "silhouettes", "silhouette_iou", "area_ratio", "shaded", "MASK"]
 
 MASK = 64  #: silhouette mask side, pixels
 PIXEL_ERROR = 1.0  #: projected geometric error at the switching distance, pixels
@@ -86,9 +95,10 @@ class Reference:
     faces: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
-    area: float
+    area: float  # exposed surface area
     closed: bool
-    masks: np.ndarray  # (3, MASK, MASK) bool
+    masks: np.ndarray  # (3, MASK, MASK) covered fraction of each pixel (0 or 1 when samples == 1)
+    samples: int = 1  # coverage points per pixel side
     renders: dict = field(default_factory=dict)  # FLIP render side → the finest level's shaded render
 
     def shaded(self, size: int) -> np.ndarray:
@@ -178,38 +188,32 @@ def _draw(tri: np.ndarray, shade: np.ndarray, h: int, w: int) -> tuple[np.ndarra
 # --------------------------------------------------------------------------- measures
 
 
-def surface_area(positions: np.ndarray, faces: np.ndarray) -> float:
-    tri = np.asarray(positions, np.float64)[np.asarray(faces, np.int64)]
-    return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
-
-
-def is_closed(faces: np.ndarray) -> bool:
-    """Every undirected edge is shared by an even number of faces (a union of closed shells)."""
-    f = np.asarray(faces, np.int64).reshape(-1, 3)
-    if f.shape[0] == 0:
-        return False
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    lo, hi = e.min(axis=1), e.max(axis=1)
-    key = np.sort(lo * (int(hi.max()) + 1) + hi)  # one integer per undirected edge
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    counts = np.diff(np.r_[starts, key.size])
-    return bool((counts % 2 == 0).all())
-
-
 def silhouettes(positions: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                res: int = MASK) -> np.ndarray:
-    """(3, res, res) bool coverage masks along x, y and z, each filling the box lo..hi's face."""
+                res: int = MASK, samples: int = 1) -> np.ndarray:
+    """Coverage masks along x, y and z, each filling the box lo..hi's face.
+
+    samples == 1: (3, res, res) bool; else (3, res, res) float32, each pixel's covered share
+    of its samples × samples points.
+    """
+    side = res * samples
     ext = np.maximum(np.asarray(hi) - np.asarray(lo), 1e-9)
-    uv = np.ascontiguousarray((np.asarray(positions, np.float64) - lo) / ext * res)
-    out = np.zeros((3, res, res), bool)
-    _cover(uv, np.ascontiguousarray(faces, np.int64), res, out)
-    return out
+    uv = np.ascontiguousarray((np.asarray(positions, np.float64) - lo) / ext * side)
+    out = np.zeros((3, side, side), bool)
+    _cover(uv, np.ascontiguousarray(faces, np.int64), side, out)
+    if samples == 1:
+        return out
+    return out.reshape(3, res, samples, res, samples).mean(axis=(2, 4), dtype=np.float32)
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:
-    union = np.logical_or(a, b).sum(axis=(1, 2))
-    inter = np.logical_and(a, b).sum(axis=(1, 2))
-    return float(np.min(np.where(union > 0, inter / np.maximum(union, 1), 1.0)))
+    """Least IoU over the three mask pairs: Σ min / Σ max (for bool masks, |a ∩ b| / |a ∪ b|)."""
+    if a.dtype == bool and b.dtype == bool:
+        union = np.logical_or(a, b).sum(axis=(1, 2))
+        inter = np.logical_and(a, b).sum(axis=(1, 2))
+    else:
+        union = np.maximum(a, b).sum(axis=(1, 2), dtype=np.float64)
+        inter = np.minimum(a, b).sum(axis=(1, 2), dtype=np.float64)
+    return float(np.min(np.where(union > 0, inter / np.maximum(union, 1e-12), 1.0)))
 
 
 def _view_basis() -> np.ndarray:
@@ -289,24 +293,38 @@ def flip_error(ref: Reference, positions: np.ndarray, faces: np.ndarray, error: 
     return float(mean)
 
 
-def reference(positions: np.ndarray, faces: np.ndarray) -> Reference:
+def reference(positions: np.ndarray, faces: np.ndarray, *, samples: int = 1, area: float | None = None,
+              closed: bool | None = None) -> Reference:
+    """The finest level's side of the measures.
+
+    samples : coverage points per mask pixel side (1: binary masks, for one object)
+    area    : its exposed area when the caller knows it (an HLOD node: the sum over its objects,
+              which stand apart), else measured here
+    closed  : whether the area bound applies, when the caller knows it
+    """
     p = np.asarray(positions, np.float64)
     f = np.asarray(faces, np.int64)
     lo, hi = p.min(axis=0), p.max(axis=0)
     pad = 0.02 * np.maximum(hi - lo, 1e-6)
     lo, hi = lo - pad, hi + pad
-    return Reference(p, f, lo, hi, surface_area(p, f), is_closed(f), silhouettes(p, f, lo, hi))
+    return Reference(p, f, lo, hi, exposed_area(p, f) if area is None else float(area),
+                     is_closed(f) if closed is None else bool(closed),
+                     silhouettes(p, f, lo, hi, samples=samples), samples)
 
 
 def silhouette_iou(ref: Reference, positions: np.ndarray, faces: np.ndarray) -> float:
     """Least silhouette IoU over the six axis directions of the level against ``ref``."""
-    return _iou(ref.masks, silhouettes(positions, faces, ref.lo, ref.hi))
+    return _iou(ref.masks, silhouettes(positions, faces, ref.lo, ref.hi, samples=ref.samples))
+
+
+def area_ratio(ref: Reference, positions: np.ndarray, faces: np.ndarray) -> float:
+    """The level's exposed surface area over the finest level's."""
+    return exposed_area(positions, faces) / max(ref.area, 1e-30)
 
 
 def measure(ref: Reference, positions: np.ndarray, faces: np.ndarray, error: float,
             method: str = "source", with_flip: bool = True) -> Fidelity:
     """The level's area ratio, least silhouette IoU over the six directions and FLIP vs ``ref``."""
-    area = surface_area(positions, faces)
     iou = silhouette_iou(ref, positions, faces)
     flip = flip_error(ref, positions, faces, error) if with_flip else float("nan")
-    return Fidelity(area / max(ref.area, 1e-30), iou, flip, method)
+    return Fidelity(area_ratio(ref, positions, faces), iou, flip, method)
