@@ -157,6 +157,7 @@ def _chain_job(args: tuple) -> ChainRows:
         rows.area = exposed_area(*coarsest)
         rows.closed = is_closed(coarsest[1])
         rows.full_closed = is_closed(full_faces)
+        rows.fidelity = [q + (rows.full_closed,) for q in fidelity]
     return rows
 
 
@@ -319,6 +320,7 @@ def build_store(
 
     # 5. write
     t0 = time.perf_counter()
+    levels, proxies = _guard_summary(chains, tree, options.bounds)
     counts = {k: 0 for k in ("mesh", "hlod", "terrain", "trees")}
     with SceneWriter(path, name=name or Path(path).stem, generator=generator, seed=seed) as writer:
         total = len(objects) + (int(tree.kept.sum()) if tree is not None else 0) + sum(
@@ -343,7 +345,7 @@ def build_store(
                 node_id[j] = writer.add_encoded(
                     f"hlod_{j}", "hlod", np.minimum(tree.lo[j], p.min(axis=0)), np.maximum(tree.hi[j], p.max(axis=0)),
                     [float(tree.error[j])], [blob], kind=HLOD, parent=-1 if up[j] < 0 else int(node_id[up[j]]),
-                    fidelity=None if q is None else [q.as_tuple()])
+                    fidelity=None if q is None else [q.as_tuple() + (bool(tree.closed[j]),)])
                 counts["hlod"] += 1
                 wrote()
             above = tree.kept_object_parent()
@@ -383,12 +385,12 @@ def build_store(
         else:
             tour_keys = [{**k, "eye": (np.asarray(k["eye"], np.float64) - origin).tolist()} for k in tour]
         writer.set_tour(tour_keys)
-        writer.set_meta(origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {},
+        writer.set_meta(shape_guard={"levels": levels, **({"proxies": proxies} if proxies else {})},
+                        origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {},
                         sources=list(source.sources), kinds=counts,
                         tree_instances=len(source.trees) if source.trees is not None else 0)
     timings["write"] = time.perf_counter() - t0
 
-    levels, proxies = _guard_summary(chains, tree, options.bounds)
     with SceneStore.open(path) as store:
         idx = store.index
         full = idx.rep_first + idx.rep_count - 1
@@ -421,7 +423,7 @@ def _guard_summary(chains: list[ChainRows], tree, bounds: Bounds) -> tuple[dict,
              dropped (not kept: the cut goes to their children), methods
     """
     measured = [q for c in chains if c.fidelity is not None for q in c.fidelity[:-1]]
-    below = sum(not bounds.passes(Fidelity(q[1], q[2], q[3], q[0]), c.full_closed)
+    below = sum(not bounds.passes(Fidelity(q[1], q[2], q[3], q[0]), q[4])
                 for c in chains if c.fidelity is not None for q in c.fidelity[:-1])
     levels = {"measured": len(measured), "below_bounds": int(below), "regenerated": int(sum(c.regenerated for c in chains)),
               "dropped": int(sum(c.dropped for c in chains)),
