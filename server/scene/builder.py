@@ -41,7 +41,7 @@ from .ladder import shaped_chain, shaped_source_chain
 from .lod import build_chain, chain_from_levels
 from .source import Mesh, SourceScene
 from .store import SceneStore
-from .surface import exposed_area, is_closed
+from .surface import is_closed
 from .tour import orbit_tour
 from .workers import POOL_MIN_JOBS, default_workers, pool_map
 from .writer import SceneWriter, encode_levels
@@ -101,8 +101,7 @@ class ChainRows:
     fidelity: per level (method, area ratio, IoU, FLIP), or None when unmeasured
     sample  : (≤ HLOD_POINTS, 3) full-detail vertices, for its HLOD ancestors' errors
     box     : its LoD1 box (``blocks.oriented_box`` of the finest level), when measured
-    area, closed : the coarsest level's exposed area and closedness, when measured
-    full_closed  : whether the finest level is closed (the area bound applies to its levels)
+    full_closed : whether the finest level is closed (the area bound applies to its levels)
     """
 
     lo: np.ndarray
@@ -116,8 +115,6 @@ class ChainRows:
     dropped: int
     sample: np.ndarray
     box: tuple[np.ndarray, np.ndarray] | None = None
-    area: float = 0.0
-    closed: bool = False
     full_closed: bool = False
 
 
@@ -154,8 +151,6 @@ def _chain_job(args: tuple) -> ChainRows:
                      dropped, sample)
     if guard:
         rows.box = oriented_box(full, full_faces)
-        rows.area = exposed_area(*coarsest)
-        rows.closed = is_closed(coarsest[1])
         rows.full_closed = is_closed(full_faces)
         rows.fidelity = [q + (rows.full_closed,) for q in fidelity]
     return rows
@@ -276,8 +271,6 @@ def build_store(
                           points=[r.sample for r in rows] if options.shape_guard else None,
                           bounds=options.bounds if guarded else None,
                           boxes=[r.box for r in rows] if guarded else None,
-                          areas=np.array([r.area for r in rows]) if guarded else None,
-                          closed=np.array([r.closed for r in rows], bool) if guarded else None,
                           min_saving=options.min_saving, max_proxy_faces=options.max_proxy_faces)
     timings["hlod"] = time.perf_counter() - t0
 

@@ -293,23 +293,16 @@ def flip_error(ref: Reference, positions: np.ndarray, faces: np.ndarray, error: 
     return float(mean)
 
 
-def reference(positions: np.ndarray, faces: np.ndarray, *, samples: int = 1, area: float | None = None,
-              closed: bool | None = None) -> Reference:
-    """The finest level's side of the measures.
-
-    samples : coverage points per mask pixel side (1: binary masks, for one object)
-    area    : its exposed area when the caller knows it (an HLOD node: the sum over its objects,
-              which stand apart), else measured here
-    closed  : whether the area bound applies, when the caller knows it
-    """
+def reference(positions: np.ndarray, faces: np.ndarray, *, samples: int = 1) -> Reference:
+    """The finest level's side of the measures; samples: coverage points per mask pixel side
+    (1: binary masks, for one object)."""
     p = np.asarray(positions, np.float64)
     f = np.asarray(faces, np.int64)
     lo, hi = p.min(axis=0), p.max(axis=0)
     pad = 0.02 * np.maximum(hi - lo, 1e-6)
     lo, hi = lo - pad, hi + pad
-    return Reference(p, f, lo, hi, exposed_area(p, f) if area is None else float(area),
-                     is_closed(f) if closed is None else bool(closed),
-                     silhouettes(p, f, lo, hi, samples=samples), samples)
+    return Reference(p, f, lo, hi, exposed_area(p, f), is_closed(f), silhouettes(p, f, lo, hi, samples=samples),
+                     samples)
 
 
 def silhouette_iou(ref: Reference, positions: np.ndarray, faces: np.ndarray) -> float:

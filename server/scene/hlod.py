@@ -30,9 +30,9 @@ import numpy as np
 from server.scene import blocks
 from server.scene.fidelity import Bounds
 from server.scene.lod import geometric_error
-from server.scene.proxies import DECIMATE_MAX_FACES, ERROR_SAMPLES, ProxyJob, merge, node_proxy, simplify
+from server.scene.proxies import (DECIMATE_MAX_FACES, ERROR_SAMPLES, ProxyJob, merge, node_proxy, proxy_limit,
+                                  simplify)
 from server.scene.source import Mesh
-from server.scene.surface import exposed_area, is_closed
 from server.scene.workers import process_pool
 
 __all__ = ["HLODTree", "build_hlod"]
@@ -194,8 +194,6 @@ def build_hlod(
     points: Sequence[np.ndarray] | None = None,
     bounds: Bounds | None = None,
     boxes: Sequence[tuple[np.ndarray, np.ndarray] | None] | None = None,
-    areas: np.ndarray | None = None,
-    closed: np.ndarray | None = None,
     min_saving: float = 0.4,
 ) -> HLODTree:
     """Cluster n objects into an HLOD tree and build every inner node's proxy.
@@ -219,10 +217,10 @@ def build_hlod(
                       and decimate, unmeasured, every node kept
     boxes           : with bounds, n LoD1 boxes (``blocks.oriented_box`` of each object's
                       finest level; None where there is none)
-    areas, closed   : with bounds, (n,) exposed area and closedness of each object's proxy
-    min_saving      : with bounds, a proxy saves at least this share of the faces of what it
-                      replaces in a cut (its kept children's proxies, or theirs when a child is
-                      not kept, and its objects' proxies)
+    min_saving      : with bounds, a proxy saves at least this share of the cost (faces and
+                      draws, ``proxies.proxy_limit``) of what it replaces in a cut: its kept
+                      children's proxies (or what stands in for a child not kept) and its
+                      objects' proxies
 
     Without ``points``, a node's error is the estimated Hausdorff distance from the merged
     children's vertices to its proxy plus the largest child error; with them it is measured
@@ -244,10 +242,6 @@ def build_hlod(
     if bounds is not None:
         if boxes is None:
             boxes = [blocks.oriented_box(m.positions, m.faces) for m in proxies]
-        if areas is None:
-            areas = np.array([exposed_area(m.positions, m.faces) for m in proxies])
-        if closed is None:
-            closed = np.array([is_closed(m.faces) for m in proxies], bool)
     stalled = np.zeros(n_nodes, bool)  # the node's proxy needed vertex clustering
     standing: list[list[Mesh]] = [[] for _ in range(n_nodes)]  # what a node not kept leaves in a cut
     pool = process_pool(workers) if workers > 1 else None
@@ -276,8 +270,7 @@ def build_hlod(
                     boxes=[boxes[o] for o in under],
                     parts=[(m.positions, m.faces) for m in parts] if faces <= DECIMATE_MAX_FACES else [],
                     points=pts[-1] if pts[-1] is not None else np.zeros((0, 3)),
-                    area=float(areas[under].sum()), closed=bool(closed[under].all()),
-                    limit=min(max_proxy_faces, int(np.floor((1.0 - min_saving) * faces)))))
+                    limit=proxy_limit(faces, len(parts), min_saving, max_proxy_faces)))
             if bounds is None:
                 args = (tasks, [max_proxy_faces] * len(tasks), flags, pts)
                 fn = _merged_proxy

@@ -16,11 +16,12 @@ whole city would not fit in memory at once. The candidates, in ladder order:
   coarsest levels) merged and decimated; tried only while the parts are few
   faces, since quadric decimation of a city block is slow.
 
-A candidate counts when it has at most ``limit`` faces (the builder's face
-saving against the parts it replaces in a cut). Candidates are measured in
-ladder order — area ratio of exposed surface (the objects stand apart, so the
-reference's is the sum of theirs), silhouette IoU on coverage fractions (the
-objects are a few pixels each in a node's masks), then the proxy's geometric
+A candidate counts when it has at most ``limit`` faces (``limit``: the cost
+saving against the parts it replaces in a cut, a draw call counted as
+``DRAW_FACES`` faces). Candidates are measured in ladder order — area ratio of
+exposed surface (the walls row houses share are buried, in the reference as in
+a proxy), silhouette IoU on coverage fractions (the objects are a few pixels
+each in a node's masks), then the proxy's geometric
 error from the subtree's full-detail points and FLIP at its switching distance —
 and the first that passes is the proxy; a later one than the first measured is
 *regenerated*. When none passes, the node keeps no proxy: it is not kept, and
@@ -39,7 +40,7 @@ from .fidelity import Bounds, Fidelity, area_ratio, flip_error, reference, silho
 from .footprints import footprint_proxy
 from .lod import clean_mesh, geometric_error
 
-__all__ = ["ProxyJob", "ProxyResult", "node_proxy", "merge", "simplify", "LADDER", "SAMPLES"]
+__all__ = ["ProxyJob", "ProxyResult", "node_proxy", "proxy_limit", "merge", "simplify", "LADDER", "SAMPLES"]
 
 #: Candidate methods, in ladder order.
 LADDER = ("box", "footprint", "decimate")
@@ -53,6 +54,16 @@ ERROR_SAMPLES = 1000
 #: Parts above this many faces are not decimated (a candidate that fails on buildings anyway).
 DECIMATE_MAX_FACES = 20000
 
+#: A draw call's cost in faces (F&S's per-object term C0 over the per-face C1, on the renderer this
+#: is made for): a proxy drawn once instead of its parts saves their draws as well as faces.
+DRAW_FACES = 16
+
+
+def proxy_limit(part_faces: int, parts: int, min_saving: float, cap: int) -> int:
+    """Most faces of a proxy that costs at most 1 − ``min_saving`` of its ``parts`` (draws and faces)."""
+    cost = part_faces + DRAW_FACES * parts
+    return max(0, min(cap, int(np.floor((1.0 - min_saving) * cost)) - DRAW_FACES))
+
 
 @dataclass
 class ProxyJob:
@@ -63,7 +74,6 @@ class ProxyJob:
     parts   : what the node replaces in a cut (kept children's proxies, objects' coarsest levels);
               empty when they are too many faces to decimate
     points  : (p, 3) the subtree's full-detail points, for the geometric error
-    area    : the reference's exposed area; closed: whether every object is closed
     limit   : most faces a proxy may have
     """
 
@@ -71,8 +81,6 @@ class ProxyJob:
     boxes: list
     parts: list
     points: np.ndarray
-    area: float
-    closed: bool
     limit: int
 
 
@@ -157,8 +165,10 @@ def _candidate(method: str, job: ProxyJob, ref_mesh: tuple[np.ndarray, np.ndarra
         return (p, f) if f.shape[0] else None
     if not job.parts:
         return None
-    p, f, _ = simplify(*merge(job.parts), job.limit)
-    return (p, f) if 0 < f.shape[0] <= job.limit else None
+    pos, fac = merge(job.parts)
+    target = min(job.limit, (fac.shape[0] * 3) // 5)  # decimation that removes faces, whatever draws save
+    p, f, _ = simplify(pos, fac, target)
+    return (p, f) if 0 < f.shape[0] <= target else None
 
 
 def node_proxy(job: ProxyJob, bounds: Bounds) -> ProxyResult:
@@ -166,7 +176,7 @@ def node_proxy(job: ProxyJob, bounds: Bounds) -> ProxyResult:
     ref_mesh = merge(job.objects)
     if ref_mesh[1].shape[0] == 0:
         return ProxyResult(None, None, float("nan"), None, False, None)
-    ref = reference(*ref_mesh, samples=SAMPLES, area=job.area, closed=job.closed)
+    ref = reference(*ref_mesh, samples=SAMPLES)
     points = job.points if len(job.points) else ref_mesh[0]
     best, measured = None, 0
     for method in LADDER:

@@ -14,7 +14,6 @@ from server.scene.builder import BuildOptions, build_store
 from server.scene.data import data_file
 from server.scene.fidelity import Bounds, _draw, is_closed, measure, reference, surface_area
 from server.scene.proxies import merge as _merge
-from server.scene.surface import exposed_area
 from server.scene.generate.megacity import megacity
 from server.scene.importers import load_source
 from server.scene.index import HLOD, MESH
@@ -95,7 +94,7 @@ def _check_store(path, bounds: Bounds = Bounds(), remeasure: int = 6) -> dict:
             under = [o for o in meshes if node in _ancestors(idx.object_parent, o)]
             objs = [_mesh(decode_geometry(b)) for b in store.geometries(idx.rep_first[under].tolist())]
             proxy = _mesh(decode_geometry(store.geometries([int(idx.rep_first[node])])[0]))
-            ref = reference(*_merge(objs), samples=4, area=sum(exposed_area(*m) for m in objs))
+            ref = reference(*_merge(objs), samples=4)
             again = measure(ref, *proxy, 1.0, with_flip=False)
             assert again.iou >= bounds.iou - 0.02
             closed_objects = all(is_closed(f) for _, f in objs)
