@@ -122,6 +122,7 @@ def _chain_job(args: tuple) -> ChainRows:
     """One object's rows (``ChainRows``)."""
     levels, morph, min_saving, building, guard, bounds = args
     fidelity = None
+    box = None
     regenerated = dropped = 0
     if guard:
         if len(levels) == 1:
@@ -129,7 +130,7 @@ def _chain_job(args: tuple) -> ChainRows:
                                   min_saving=min_saving)
         else:
             shaped = shaped_source_chain(levels, building=building, bounds=bounds)
-        chain, regenerated, dropped = shaped.chain, shaped.regenerated, shaped.dropped
+        chain, regenerated, dropped, box = shaped.chain, shaped.regenerated, shaped.dropped, shaped.box
         fidelity = [f.as_tuple() for f in shaped.fidelity]
     elif len(levels) == 1:
         chain = build_chain(levels[0][0], levels[0][1], min_saving=min_saving, morph=morph)
@@ -150,7 +151,7 @@ def _chain_job(args: tuple) -> ChainRows:
     rows = ChainRows(lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest, fidelity, regenerated,
                      dropped, sample)
     if guard:
-        rows.box = oriented_box(full, full_faces)
+        rows.box = box if box is not None else oriented_box(full, full_faces)
         rows.full_closed = is_closed(full_faces)
         rows.fidelity = [q + (rows.full_closed,) for q in fidelity]
     return rows

@@ -14,8 +14,8 @@ level's switching distance):
 
 A candidate counts only if it saves ``min_saving`` of the faces of the level
 before and passes the ``Bounds``; among those passing the one with the best
-silhouette is kept (IoUs within ``IOU_TIE`` count as one grade, where fewer
-faces win). Pruning takes the weakest reach (``PRUNE_REACH``) whose
+silhouette is kept (among those within ``IOU_TIE`` of it, the one with the
+fewest faces). Pruning takes the weakest reach (``PRUNE_REACH``) whose
 result fits the faces. When decimation was tried and failed but a later method
 passed, the level was *regenerated*; when every candidate failed it is
 *dropped* and the chain ends there. Once the chain leaves decimation it only
@@ -44,9 +44,9 @@ __all__ = ["ShapedChain", "shaped_chain", "shaped_source_chain", "LADDER"]
 #: Methods that make a coarser level, in ladder order.
 LADDER = ("decimate", "prune", "block", "box", "hull")
 
-#: Silhouette IoUs closer than this are one grade (a pixel or two of a 64-pixel mask's edge):
-#: among candidates of one grade the one with fewer faces is kept.
-IOU_TIE = 0.01
+#: Silhouette IoUs within this of the best are as good (a pixel of edge on a 64-pixel mask moves
+#: an object's IoU by a few hundredths): among them the candidate with the fewest faces is kept.
+IOU_TIE = 0.02
 
 #: How far (share of the diagonal) a shell may stand out of a bigger one and still be pruned,
 #: weakest first: each coarser level prunes no less than the one before.
@@ -62,6 +62,7 @@ class ShapedChain:
     regenerated: int = 0
     dropped: int = 0
     failed: list[str] = field(default_factory=list)
+    box: tuple | None = None  # the oriented box made from the finest level, when the ladder made one
 
 
 def _proxy(method: str, fine: tuple[np.ndarray, np.ndarray], reach: float = 0.0, shells=None):
@@ -163,8 +164,10 @@ def shaped_chain(positions: np.ndarray, faces: np.ndarray, *, building: bool, bo
             if ok:
                 candidates.append((fid.iou, -level[1].shape[0], method, key, level, vmap, fid))
         chosen = None
-        # Best silhouette first; within IOU_TIE of one another, fewer faces first.
-        order = sorted(candidates, key=lambda c: (np.floor(c[0] / IOU_TIE), c[1]), reverse=True)
+        # Those within IOU_TIE of the best silhouette first, fewest faces first; then the rest, best first.
+        top = max((c[0] for c in candidates), default=0.0)
+        order = sorted(candidates, key=lambda c: (c[0] >= top - IOU_TIE, c[1] if c[0] >= top - IOU_TIE else c[0]),
+                       reverse=True)
         for _, _, method, key, level, vmap, fid in order:
             if key not in raw_error:
                 raw_error[key] = geometric_error(fine[0], level[0], level[1], samples)
@@ -198,7 +201,7 @@ def shaped_chain(positions: np.ndarray, faces: np.ndarray, *, building: bool, bo
         morphs.append(vmap if vmap is not None else nearest_vertex_map(levels[k][0], levels[k - 1][0]))
     kind = "collapse" if all(v is not None for v in maps) else "nearest"
     chain = Chain(levels, morphs, errors[::-1], kind)
-    return ShapedChain(chain, fids[::-1], regenerated, dropped)
+    return ShapedChain(chain, fids[::-1], regenerated, dropped, box=made.get(("box", 0)))
 
 
 def shaped_source_chain(levels: Sequence[tuple[np.ndarray, np.ndarray]], *, building: bool,

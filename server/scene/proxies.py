@@ -10,11 +10,12 @@ whole city would not fit in memory at once. The candidates, in ladder order:
 
 - ``box`` — the objects' LoD1 boxes (``blocks.oriented_box`` of each object's
   finest level), merged: CityGML's LoD1 for a block of buildings;
-- ``footprint`` — the reference as a 2.5-D footprint set with per-footprint
-  heights (``footprints.footprint_proxy``), the finest that fits the faces;
 - ``decimate`` — the node's parts (its kept children's proxies, the objects'
-  coarsest levels) merged and decimated; tried only while the parts are few
-  faces, since quadric decimation of a city block is slow.
+  coarsest levels, which the shape ladder made wall-keeping) merged and
+  decimated; tried only while the parts are few faces, since quadric
+  decimation of a city block is slow;
+- ``footprint`` — the reference as a 2.5-D footprint set with per-footprint
+  heights (``footprints.footprint_proxy``), the finest that fits the faces.
 
 A candidate counts when it has at most ``limit`` faces (``limit``: the cost
 saving against the parts it replaces in a cut, a draw call counted as
@@ -42,8 +43,9 @@ from .lod import clean_mesh, geometric_error
 
 __all__ = ["ProxyJob", "ProxyResult", "node_proxy", "proxy_limit", "merge", "simplify", "LADDER", "SAMPLES"]
 
-#: Candidate methods, in ladder order.
-LADDER = ("box", "footprint", "decimate")
+#: Candidate methods, in ladder order: the footprint set last, as it is the slowest to make and,
+#: on a grid, needs the most faces for a given outline.
+LADDER = ("box", "decimate", "footprint")
 
 #: Coverage points per mask pixel side for a node's silhouettes.
 SAMPLES = 4
