@@ -133,6 +133,12 @@ def test_megacity_block_has_walls_at_street_level(tmp_path) -> None:
     got = _check_store(out)
     assert summary["levels"]["dropped"] > 0  # the guard removed the wall-less levels decimation made
     assert got["hlod"] > 0 and summary["proxies"]["kept"] == got["hlod"]
+    from server.scene.inspect import format_report, inspect_store
+
+    report = inspect_store(out)
+    assert report["kinds"]["hlod"]["fidelity"]["measured"] == got["hlod"]
+    assert report["shape_guard"]["proxies"] == summary["proxies"]
+    assert "\n".join(format_report(report)).count("all within bounds") == 2  # buildings and proxies
     with SceneStore.open(out) as store:
         idx = store.index
         building = idx.class_names.index("building")
@@ -186,3 +192,34 @@ def test_is_closed_sees_a_missing_face(w, d, h, drop) -> None:
     m = trimesh.creation.box((w, d, h))
     assert is_closed(m.faces)
     assert not is_closed(np.delete(m.faces, drop, axis=0))
+
+
+def test_inspect_reports_levels_and_proxies_against_the_bounds(tmp_path) -> None:
+    """inspect counts, per kind and level (depth for proxies), what is below the bounds — an open
+    mesh's area ratio is not — names the worst, and prints the build's guard counts."""
+    from server.scene.inspect import format_report, inspect_store
+    from server.scene.writer import SceneWriter, encode_levels
+
+    box = trimesh.creation.box((10, 10, 10))
+    tent = trimesh.creation.box((10, 10, 10))
+    tent.faces = tent.faces[:-2]  # open: its area ratio does not count
+    path = tmp_path / "s.db"
+    with SceneWriter(path, name="t") as w:
+        for name, mesh, q in (("good", box, ("prune", 0.95, 0.97, 0.02, True)),
+                              ("thin", box, ("decimate", 0.3, 0.95, 0.02, True)),
+                              ("open", tent, ("decimate", 0.3, 0.95, 0.02, False))):
+            lo, hi, blobs, _ = encode_levels([(mesh.vertices, mesh.faces)] * 2, [None, None], reorder=False)
+            w.add_encoded(name, "building", lo, hi, [0.5, 0.0], blobs, fidelity=[q, ("source", 1, 1, float("nan"), True)])
+        lo, hi, blobs, _ = encode_levels([(box.vertices, box.faces)], [None], reorder=False)
+        w.add_encoded("hlod_0", "hlod", lo, hi, [1.0], blobs, kind=HLOD, fidelity=[("box", 0.9, 0.8, 0.1, True)])
+        w.set_tour([{"t": 0.0, "eye": [0, -40, 5], "forward": [0, 1, 0], "up": [0, 0, 1]},
+                    {"t": 1.0, "eye": [0, -30, 5], "forward": [0, 1, 0], "up": [0, 0, 1]}])
+        w.set_meta(shape_guard={"levels": {"measured": 3, "below_bounds": 0, "regenerated": 1, "dropped": 2},
+                                "proxies": {"nodes": 3, "kept": 1, "below_bounds": 0, "regenerated": 0, "dropped": 2}})
+    report = inspect_store(path)
+    mesh, hlod = report["kinds"]["mesh"]["fidelity"], report["kinds"]["hlod"]["fidelity"]
+    assert mesh["measured"] == 3 and mesh["below_bounds"] == 1 and mesh["worst"][0]["name"] in ("thin", "open")
+    assert hlod["measured"] == 1 and hlod["below_bounds"] == 1 and hlod["levels"][0]["depth"] == 0
+    assert hlod["worst"][0]["name"] == "hlod_0" and hlod["worst"][0]["method"] == "box"
+    text = "\n".join(format_report(report))
+    assert "1 below bounds" in text and "1 of 3 nodes kept" in text and "2 not kept" in text
