@@ -23,7 +23,8 @@ saving against the parts it replaces in a cut, a draw call counted as
 exposed surface (the walls row houses share are buried, in the reference as in
 a proxy), silhouette IoU on coverage fractions (the objects are a few pixels
 each in a node's masks), then the proxy's geometric
-error from the subtree's full-detail points and FLIP at its switching distance —
+error both ways (the subtree's full-detail points to the proxy, points on the
+proxy to the subtree) and FLIP at its switching distance —
 and the first that passes is the proxy; a later one than the first measured is
 *regenerated*. When none passes, the node keeps no proxy: it is not kept, and
 a cut goes from its parent (or from the roots) straight to its children.
@@ -173,6 +174,27 @@ def _candidate(method: str, job: ProxyJob, ref_mesh: tuple[np.ndarray, np.ndarra
     return (p, f) if 0 < f.shape[0] <= target else None
 
 
+def _surface_samples(positions: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
+    """(n, 3) points spread over the surface by area (systematically: deterministic, every face its share)."""
+    tri = positions[faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    cum = np.cumsum(area)
+    t = np.minimum(np.searchsorted(cum, (np.arange(n) + 0.5) / n * cum[-1], side="right"), faces.shape[0] - 1)
+    u = (0.5 + np.arange(n) / 1.32471795724474602596) % 1.0  # R2 low-discrepancy points inside each face
+    v = (0.5 + np.arange(n) / 1.32471795724474602596 ** 2) % 1.0
+    r1 = np.sqrt(u)[:, None]
+    return tri[t, 0] * (1 - r1) + tri[t, 1] * (r1 * (1 - v[:, None])) + tri[t, 2] * (r1 * v[:, None])
+
+
+def _hausdorff(points: np.ndarray, ref_mesh: tuple[np.ndarray, np.ndarray], p: np.ndarray, f: np.ndarray) -> float:
+    """The proxy's geometric error both ways: from the subtree's full-detail points to the proxy, and
+    from points on the proxy to the subtree's coarsest levels — a proxy that spans the street
+    between two buildings, or a slab over empty space, is far from everything it stands for."""
+    out = geometric_error(points, p, f, samples=ERROR_SAMPLES)
+    back = geometric_error(_surface_samples(p, f, ERROR_SAMPLES), *ref_mesh, samples=ERROR_SAMPLES)
+    return max(out, back)
+
+
 def node_proxy(job: ProxyJob, bounds: Bounds) -> ProxyResult:
     """The node's proxy: the first candidate in ladder order within ``limit`` and ``bounds``."""
     ref_mesh = merge(job.objects)
@@ -190,7 +212,7 @@ def node_proxy(job: ProxyJob, bounds: Bounds) -> ProxyResult:
         area = area_ratio(ref, p, f)
         fid = Fidelity(area, silhouette_iou(ref, p, f), float("nan"), method)
         if bounds.passes(fid, ref.closed):
-            err = geometric_error(points, p, f, samples=ERROR_SAMPLES)
+            err = _hausdorff(points, ref_mesh, p, f)
             fid = Fidelity(area, fid.iou, flip_error(ref, p, f, err), method)
             if bounds.passes(fid, ref.closed):
                 return ProxyResult(p, f, err, fid, measured > 1, None, ref.closed)
