@@ -144,13 +144,15 @@ def pruned(positions: np.ndarray, faces: np.ndarray, reach: float,
     return p[used], remap[kept]
 
 
-def block_model(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """LoD1 block: footprint extruded from the ground to the mean roof height; None if degenerate."""
+def block_model(positions: np.ndarray, faces: np.ndarray, roof: float | None = None
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+    """LoD1 block: footprint extruded from the ground to the mean roof height (``roof_height``, unless
+    the caller has it); None if degenerate."""
     p = np.asarray(positions, np.float64)
     f = np.asarray(faces, np.int64)
     z0 = float(p[:, 2].min())
     height = float(p[:, 2].max()) - z0
-    z1 = roof_height(p, f)
+    z1 = roof_height(p, f) if roof is None else float(roof)
     if not z1 > z0 + 1e-6:
         return None
     found = _ground_footprint(p, f, z0, height)
@@ -173,12 +175,13 @@ def block_model(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
     return pos, np.concatenate([gb, top, walls]).astype(np.int64)
 
 
-def oriented_box(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def oriented_box(positions: np.ndarray, faces: np.ndarray, roof: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The least-area plan rectangle from the ground to the mean roof height (12 faces); None if degenerate."""
     p = np.asarray(positions, np.float64)
     f = np.asarray(faces, np.int64)
     z0 = float(p[:, 2].min())
-    z1 = roof_height(p, f)
+    z1 = roof_height(p, f) if roof is None else float(roof)
     ring = _hull_ring(p[:, :2])
     if ring is None or not z1 > z0 + 1e-6:
         return None

@@ -224,23 +224,36 @@ def _view_basis() -> np.ndarray:
     return np.stack([right, up, d])
 
 
+@numba.njit(cache=True, nogil=True)
+def _shade(p: np.ndarray, f: np.ndarray, basis: np.ndarray, centre: np.ndarray, radius: float, size: int,
+           light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-space triangles (m, 3, 3) seen along basis[2] and their Lambert shades (m,)."""
+    m = f.shape[0]
+    tri = np.empty((m, 3, 3))
+    shade = np.empty(m)
+    for t in range(m):
+        for c in range(3):
+            v = p[f[t, c]] - centre
+            tri[t, c, 0] = (v @ basis[0] / radius + 1.0) * size / 2
+            tri[t, c, 1] = (1.0 - v @ basis[1] / radius) * size / 2
+            tri[t, c, 2] = v @ basis[2]
+        a, b, d = p[f[t, 0]], p[f[t, 1]], p[f[t, 2]]
+        ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        vx, vy, vz = d[0] - a[0], d[1] - a[1], d[2] - a[2]
+        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        norm = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-30)
+        shade[t] = 0.15 + 0.75 * abs((nx * light[0] + ny * light[1] + nz * light[2]) / norm)
+    return tri, shade
+
+
 def shaded(positions: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray, size: int) -> np.ndarray:
     """(size, size, 3) float32 render in [0, 1]: Lambert-shaded grey over a sky colour, from ``_VIEW``."""
-    p = np.asarray(positions, np.float64)
-    f = np.asarray(faces, np.int64)
-    basis = _view_basis()
-    centre = (np.asarray(lo) + np.asarray(hi)) / 2
+    p = np.ascontiguousarray(positions, np.float64)
+    f = np.ascontiguousarray(faces, np.int64)
+    centre = (np.asarray(lo, np.float64) + np.asarray(hi, np.float64)) / 2
     radius = max(float(np.linalg.norm(np.asarray(hi) - np.asarray(lo))) / 2, 1e-9)
-    q = (p - centre) @ basis.T  # right, up, toward the camera
-    px = np.stack([(q[:, 0] / radius + 1) * size / 2, (1 - q[:, 1] / radius) * size / 2, q[:, 2]], axis=1)
-    tri = p[f]
-    u, v = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    n = np.column_stack([u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1], u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
-                         u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]])  # the cross product, without np.cross's overhead
-    n /= np.maximum(np.sqrt((n * n).sum(axis=1, keepdims=True)), 1e-30)
-    light = _LIGHT / np.linalg.norm(_LIGHT)
-    shade = 0.15 + 0.75 * np.abs(n @ light)
-    image, _ = _draw(px[f], shade, size, size)
+    tri, shade = _shade(p, f, _view_basis(), centre, radius, int(size), _LIGHT / np.linalg.norm(_LIGHT))
+    image, _ = _draw(tri, shade, size, size)
     rgb = np.where(image[..., None] >= 0, image[..., None] * np.array([0.93, 0.9, 0.85]), _BACKGROUND)
     return np.clip(rgb, 0.0, 1.0).astype(np.float32)
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from . import blocks
 from .fidelity import Bounds, Fidelity, area_ratio, flip_error, reference, silhouette_iou
-from .lod import Chain, _prepare, _simplify_step, geometric_error, nearest_vertex_map
+from .lod import Chain, _prepare, _simplify_step, clean_mesh, geometric_error, nearest_vertex_map
 
 __all__ = ["ShapedChain", "shaped_chain", "shaped_source_chain", "LADDER"]
 
@@ -65,20 +65,20 @@ class ShapedChain:
     box: tuple | None = None  # the oriented box made from the finest level, when the ladder made one
 
 
-def _proxy(method: str, fine: tuple[np.ndarray, np.ndarray], reach: float = 0.0, shells=None):
+def _proxy(method: str, fine: tuple[np.ndarray, np.ndarray], reach: float = 0.0, shells=None,
+           roof: float | None = None):
+    """A ladder proxy made from the finest level, cleaned (``_prepare`` orders it once it is kept)."""
     p, f = fine
     if method == "prune":
         out = None if shells is None else blocks.pruned(p, f, reach, shells)
     elif method == "hull":
         out = blocks.convex_hull(p)
     else:
-        out = {"block": blocks.block_model, "box": blocks.oriented_box}[method](p, f)
+        out = {"block": blocks.block_model, "box": blocks.oriented_box}[method](p, f, roof)
     if out is None:
         return None
-    try:
-        return _prepare(*out)
-    except ValueError:
-        return None
+    out = clean_mesh(*out)
+    return out if out[1].shape[0] else None
 
 
 def _shape(ref, level, method: str, bounds: Bounds) -> tuple[bool, Fidelity]:
@@ -122,6 +122,7 @@ def shaped_chain(positions: np.ndarray, faces: np.ndarray, *, building: bool, bo
     reach = 0  # the next prune candidates start at PRUNE_REACH[reach]
     made: dict[tuple, tuple | None] = {}  # (method, reach) → the proxy made from the finest level
     shells = blocks.shell_reach(*fine) if "prune" in ladder else None
+    roof = blocks.roof_height(*fine) if building else None  # block and box share it
     shaped: dict[tuple, tuple] = {}  # (method, reach) → its cheap measures
     raw_error: dict[tuple, float] = {}  # (method, reach) → its geometric error
     regenerated = dropped = 0
@@ -150,7 +151,7 @@ def shaped_chain(positions: np.ndarray, faces: np.ndarray, *, building: bool, bo
                 for r in reaches:
                     key = (method, r)
                     if key not in made:
-                        made[key] = _proxy(method, fine, PRUNE_REACH[r] * diag, shells)
+                        made[key] = _proxy(method, fine, PRUNE_REACH[r] * diag, shells, roof)
                     if made[key] is not None and made[key][1].shape[0] <= limit:
                         level = made[key]
                         break
@@ -182,6 +183,8 @@ def shaped_chain(positions: np.ndarray, faces: np.ndarray, *, building: bool, bo
         method, key, level, vmap, fid, err = chosen
         if tried and tried[0] == "decimate" and method != "decimate":
             regenerated += 1
+        if method != "decimate":  # a decimated level is ordered already (its collapse map refers to it)
+            level = _prepare(*level)
         fine_first.append(level)
         maps.append(vmap)
         fids.append(fid)
@@ -228,7 +231,7 @@ def shaped_source_chain(levels: Sequence[tuple[np.ndarray, np.ndarray]], *, buil
 
             ok, fid, err = _measured(ref, level, error, method, bounds)
             if ok:
-                chosen = (level, fid, err)
+                chosen = (_prepare(*level) if method != "source" else level, fid, err)
                 regenerated += method != "source"
                 break
         if chosen is None:
