@@ -59,8 +59,9 @@ def inspect_store(path: str | os.PathLike[str]) -> dict:
         if k != TREES:
             full = idx.rep_first[objs] + idx.rep_count[objs] - 1
             entry["triangles_full_detail"] = int(idx.rep_faces[full].sum())
-        if fid is not None:
-            entry["fidelity"] = _fidelity(idx, fid, reps, level, by_depth, names)
+        shape = None if fid is None else _fidelity(idx, fid, reps, level, by_depth, names)
+        if shape is not None and shape["measured"]:  # a kind with nothing measured (trees, terrain) says nothing
+            entry["fidelity"] = shape
         kinds[kind] = entry
     classes = np.bincount(idx.object_class, minlength=len(idx.class_names))
     full = idx.rep_first + idx.rep_count - 1
