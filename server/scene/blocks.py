@@ -1,8 +1,13 @@
-"""Shape proxies for the coarse end of a chain: block model (CityGML LoD1), oriented box, convex hull.
+"""Shape proxies for the coarse end of a chain: pruned shells, block model (CityGML LoD1), oriented box, hull.
 
 City modelling coarsens a building along LoD2 → LoD1 → box, not by collapsing
 edges: quadric decimation of a closed, box-like building removes walls first
 and leaves roof slabs. The proxies here keep walls by construction:
+
+- ``pruned`` — the mesh without its small shells: window frames, sills,
+  ledges and parapets that stand out of the bigger shells by less than a given
+  distance go, body and roof stay (the step from LoD2 with facade and roof
+  detail to LoD2 without it, Biljecki et al. 2016's LoD2.0);
 
 - ``block_model`` — the building's footprint (its downward faces at the
   ground, or the convex hull of its plan when it has none) extruded from the
@@ -21,8 +26,12 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from .fidelity import _draw
+from .surface import shells
 
-__all__ = ["block_model", "oriented_box", "convex_hull", "roof_height", "prism"]
+__all__ = ["pruned", "shell_reach", "block_model", "oriented_box", "convex_hull", "roof_height", "prism"]
+
+#: Most shells ``pruned`` considers; beyond it the mesh is a triangle soup rather than a union of parts.
+MAX_SHELLS = 4096
 
 
 def _normals(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,13 +91,68 @@ def _ground_footprint(positions: np.ndarray, faces: np.ndarray, z0: float, heigh
     return g, boundary
 
 
-def block_model(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """LoD1 block: footprint extruded from the ground to the mean roof height; None if degenerate."""
+def shell_reach(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """How far each shell stands out of the box of a bigger shell: (label (m,) per face, reach (k,)).
+
+    A shell's reach is the least, over the shells bigger than it (by box volume; ties by order),
+    of the distance its box sticks out of theirs; the biggest shell's is infinite. None for a
+    mesh of one shell or of more than ``MAX_SHELLS``.
+    """
+    p = np.asarray(positions, np.float64)
+    f = np.asarray(faces, np.int64)
+    k, label = shells(p.shape[0], f)
+    if not 2 <= k <= MAX_SHELLS:
+        return None
+    tri = p[f]
+    order = np.argsort(label, kind="stable")
+    start = np.searchsorted(label[order], np.arange(k))
+    lo = np.minimum.reduceat(tri[order].min(axis=1), start)
+    hi = np.maximum.reduceat(tri[order].max(axis=1), start)
+    volume = np.prod(np.maximum(hi - lo, 0.0), axis=1)
+    rank = np.empty(k, np.int64)
+    rank[np.lexsort((np.arange(k), -volume))] = np.arange(k)  # 0: the biggest
+    reach = np.empty(k)
+    for a in range(0, k, 256):  # rows in chunks: the pairwise test is k × k
+        b = min(k, a + 256)
+        out = np.maximum(lo[None] - lo[a:b, None], hi[a:b, None] - hi[None]).max(axis=2)
+        out = np.where(rank[None, :] < rank[a:b, None], np.maximum(out, 0.0), np.inf)
+        reach[a:b] = out.min(axis=1)
+    return label, reach
+
+
+def pruned(positions: np.ndarray, faces: np.ndarray, reach: float,
+           shells_reach: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The mesh without the shells that stand out of a bigger shell's box by at most ``reach``.
+
+    Such a shell changes the silhouette by at most ``reach``. Shells are the connected components
+    of the faces, so this suits meshes modelled as unions of closed parts. None when nothing or
+    everything would go. ``shells_reach``: ``shell_reach``'s result, when the caller has it.
+    """
+    p = np.asarray(positions, np.float64)
+    f = np.asarray(faces, np.int64)
+    found = shell_reach(p, f) if shells_reach is None else shells_reach
+    if found is None:
+        return None
+    label, out = found
+    keep = out > reach
+    if keep.all() or not keep.any():
+        return None
+    kept = f[keep[label]]
+    used = np.unique(kept)
+    remap = np.full(p.shape[0], -1, np.int64)
+    remap[used] = np.arange(used.size)
+    return p[used], remap[kept]
+
+
+def block_model(positions: np.ndarray, faces: np.ndarray, roof: float | None = None
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+    """LoD1 block: footprint extruded from the ground to the mean roof height (``roof_height``, unless
+    the caller has it); None if degenerate."""
     p = np.asarray(positions, np.float64)
     f = np.asarray(faces, np.int64)
     z0 = float(p[:, 2].min())
     height = float(p[:, 2].max()) - z0
-    z1 = roof_height(p, f)
+    z1 = roof_height(p, f) if roof is None else float(roof)
     if not z1 > z0 + 1e-6:
         return None
     found = _ground_footprint(p, f, z0, height)
@@ -111,12 +175,13 @@ def block_model(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, n
     return pos, np.concatenate([gb, top, walls]).astype(np.int64)
 
 
-def oriented_box(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def oriented_box(positions: np.ndarray, faces: np.ndarray, roof: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The least-area plan rectangle from the ground to the mean roof height (12 faces); None if degenerate."""
     p = np.asarray(positions, np.float64)
     f = np.asarray(faces, np.int64)
     z0 = float(p[:, 2].min())
-    z1 = roof_height(p, f)
+    z1 = roof_height(p, f) if roof is None else float(roof)
     ring = _hull_ring(p[:, :2])
     if ring is None or not z1 > z0 + 1e-6:
         return None

@@ -34,12 +34,14 @@ import numpy as np
 
 from proto.geometry import encode_geometry
 
+from .blocks import oriented_box
+from .fidelity import Bounds, Fidelity
 from .index import HLOD, MESH, TERRAIN, TREES
-from .fidelity import Bounds
 from .ladder import shaped_chain, shaped_source_chain
 from .lod import build_chain, chain_from_levels
 from .source import Mesh, SourceScene
 from .store import SceneStore
+from .surface import is_closed
 from .tour import orbit_tour
 from .workers import POOL_MIN_JOBS, default_workers, pool_map
 from .writer import SceneWriter, encode_levels
@@ -66,7 +68,8 @@ class BuildOptions:
     shape_guard     : measure every coarse level (``server.scene.fidelity``) and keep only those
                       within ``bounds``, regenerating failed ones by the shape ladder
                       (``server.scene.ladder``); False: plain quadric chains, unmeasured
-    bounds          : silhouette IoU / area ratio / FLIP a kept level must reach
+    bounds          : silhouette IoU / area ratio / FLIP a kept level or proxy must reach
+    max_proxy_faces : most faces of an HLOD proxy
     """
 
     hlod: bool | str = "auto"
@@ -80,6 +83,7 @@ class BuildOptions:
     workers: int | None = None
     shape_guard: bool = True
     bounds: Bounds = Bounds()
+    max_proxy_faces: int = 4096
 
 
 #: Full-detail vertices per object from which HLOD proxies' errors are measured.
@@ -88,10 +92,37 @@ HLOD_POINTS = 48
 _BUILDING_CLASSES = ("building", "buildingpart", "building_part", "house")
 
 
-def _chain_job(args: tuple) -> tuple:
-    """One object's rows: (lo, hi, errors, blobs, morph blobs, coarsest mesh, fidelity, regenerated, dropped)."""
+@dataclass
+class ChainRows:
+    """One object's chain as the store takes it, plus what the HLOD stage needs of it.
+
+    lo, hi  : (3,) box; errors, blobs, morphs: per level, coarsest first
+    coarsest: (positions, faces) of the coarsest level, an HLOD parent's stand-in for it
+    fidelity: per level (method, area ratio, IoU, FLIP), or None when unmeasured
+    sample  : (≤ HLOD_POINTS, 3) full-detail vertices, for its HLOD ancestors' errors
+    box     : its LoD1 box (``blocks.oriented_box`` of the finest level), when measured
+    full_closed : whether the finest level is closed (the area bound applies to its levels)
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+    errors: list[float]
+    blobs: list
+    morphs: list
+    coarsest: tuple[np.ndarray, np.ndarray]
+    fidelity: list | None
+    regenerated: int
+    dropped: int
+    sample: np.ndarray
+    box: tuple[np.ndarray, np.ndarray] | None = None
+    full_closed: bool = False
+
+
+def _chain_job(args: tuple) -> ChainRows:
+    """One object's rows (``ChainRows``)."""
     levels, morph, min_saving, building, guard, bounds = args
     fidelity = None
+    box = None
     regenerated = dropped = 0
     if guard:
         if len(levels) == 1:
@@ -99,7 +130,7 @@ def _chain_job(args: tuple) -> tuple:
                                   min_saving=min_saving)
         else:
             shaped = shaped_source_chain(levels, building=building, bounds=bounds)
-        chain, regenerated, dropped = shaped.chain, shaped.regenerated, shaped.dropped
+        chain, regenerated, dropped, box = shaped.chain, shaped.regenerated, shaped.dropped, shaped.box
         fidelity = [f.as_tuple() for f in shaped.fidelity]
     elif len(levels) == 1:
         chain = build_chain(levels[0][0], levels[0][1], min_saving=min_saving, morph=morph)
@@ -115,10 +146,15 @@ def _chain_job(args: tuple) -> tuple:
     # morph[k] maps level k's vertices onto level k-1's; the coarsest level (and morph="none") has none.
     lo, hi, blobs, morphs = encode_levels(chain.levels, chain.morph, reorder=False)
     coarsest = chain.levels[0]
-    full = chain.levels[-1][0]
+    full, full_faces = chain.levels[-1]
     sample = full[np.linspace(0, full.shape[0] - 1, min(full.shape[0], HLOD_POINTS)).astype(np.int64)]
-    return (lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest, fidelity, regenerated, dropped,
-            sample)
+    rows = ChainRows(lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest, fidelity, regenerated,
+                     dropped, sample)
+    if guard:
+        rows.box = box if box is not None else oriented_box(full, full_faces)
+        rows.full_closed = is_closed(full_faces)
+        rows.fidelity = [q + (rows.full_closed,) for q in fidelity]
+    return rows
 
 
 def scene_origin(source: SourceScene) -> np.ndarray:
@@ -228,14 +264,15 @@ def build_store(
     if use_hlod and len(members) >= 2:
         from .hlod import build_hlod
 
-        lo = np.array([chains[i][0] for i in members])
-        hi = np.array([chains[i][1] for i in members])
-        proxies = [Mesh(*chains[i][5]) for i in members]
-        coarse_error = np.array([chains[i][2][0] for i in members])
-        points = [chains[i][9] for i in members] if options.shape_guard else None
-        tree = build_hlod(lo, hi, proxies, object_error=coarse_error, workers=workers,
-                          progress=lambda d, t: tick("hlod", d, t), points=points,
-                          bounds=options.bounds if options.shape_guard else None)
+        rows = [chains[i] for i in members]
+        guarded = options.shape_guard and all(r.fidelity is not None for r in rows)
+        tree = build_hlod(np.array([r.lo for r in rows]), np.array([r.hi for r in rows]),
+                          [Mesh(*r.coarsest) for r in rows], object_error=np.array([r.errors[0] for r in rows]),
+                          workers=workers, progress=lambda d, t: tick("hlod", d, t),
+                          points=[r.sample for r in rows] if options.shape_guard else None,
+                          bounds=options.bounds if guarded else None,
+                          boxes=[r.box for r in rows] if guarded else None,
+                          min_saving=options.min_saving, max_proxy_faces=options.max_proxy_faces)
     timings["hlod"] = time.perf_counter() - t0
 
     # 3. terrain quadtrees
@@ -277,9 +314,10 @@ def build_store(
 
     # 5. write
     t0 = time.perf_counter()
+    levels, proxies = _guard_summary(chains, tree, options.bounds)
     counts = {k: 0 for k in ("mesh", "hlod", "terrain", "trees")}
     with SceneWriter(path, name=name or Path(path).stem, generator=generator, seed=seed) as writer:
-        total = len(objects) + (len(tree.parent) if tree is not None else 0) + sum(
+        total = len(objects) + (int(tree.kept.sum()) if tree is not None else 0) + sum(
             len(t.parent) for _, t in terrains) + (len(groups.group_first) if groups is not None else 0)
         written = 0
 
@@ -289,31 +327,26 @@ def build_store(
             if written % 256 == 0 or written == total:
                 tick("write", written, total)
 
-        node_id: list[int] = []
-        if tree is not None:
-            n_nodes = len(tree.parent)
-            node_lo = [np.minimum(tree.lo[j], tree.proxies[j].positions.min(axis=0)) for j in range(n_nodes)]
-            node_hi = [np.maximum(tree.hi[j], tree.proxies[j].positions.max(axis=0)) for j in range(n_nodes)]
-            for m, node in zip(members, tree.object_parent):
-                node_lo[node] = np.minimum(node_lo[node], chains[m][0])
-                node_hi[node] = np.maximum(node_hi[node], chains[m][1])
-            node_lo, node_hi = _subtree_boxes(tree.parent, node_lo, node_hi)
-            for j in range(n_nodes):
-                p, f = tree.proxies[j].positions, tree.proxies[j].faces
-                blob = encode_geometry(p, f, p.min(axis=0), p.max(axis=0))
-                parent = -1 if tree.parent[j] < 0 else node_id[tree.parent[j]]
-                q = tree.fidelity[j] if tree.fidelity else None
-                node_id.append(writer.add_encoded(f"hlod_{j}", "hlod", node_lo[j], node_hi[j],
-                                                  [float(tree.error[j])], [blob], kind=HLOD, parent=parent,
-                                                  fidelity=None if q is None else [q.as_tuple()]))
-                counts["hlod"] += 1
-                wrote()
+        node_id = np.full(len(tree.parent) if tree is not None else 0, -1, np.int64)
         parent_of = np.full(len(objects), -1)
         if tree is not None:
-            parent_of[members] = np.asarray(node_id)[np.asarray(tree.object_parent)]
-        for i, (obj, (lo, hi, errors, blobs, morphs, _, fid, _, _, _)) in enumerate(zip(objects, chains)):
-            writer.add_encoded(obj.name, obj.cls, lo, hi, errors, blobs, kind=MESH, parent=int(parent_of[i]),
-                               morphs=morphs, fidelity=fid)
+            # Only kept nodes are written; each links to its nearest kept ancestor.
+            up = tree.kept_parent()
+            for j in np.flatnonzero(tree.kept):  # ascending ids: parents first
+                p, f = tree.proxies[j].positions, tree.proxies[j].faces
+                blob = encode_geometry(p, f, p.min(axis=0), p.max(axis=0))
+                q = tree.fidelity[j] if tree.fidelity else None
+                node_id[j] = writer.add_encoded(
+                    f"hlod_{j}", "hlod", np.minimum(tree.lo[j], p.min(axis=0)), np.maximum(tree.hi[j], p.max(axis=0)),
+                    [float(tree.error[j])], [blob], kind=HLOD, parent=-1 if up[j] < 0 else int(node_id[up[j]]),
+                    fidelity=None if q is None else [q.as_tuple() + (bool(tree.closed[j]),)])
+                counts["hlod"] += 1
+                wrote()
+            above = tree.kept_object_parent()
+            parent_of[members] = np.where(above >= 0, node_id[np.maximum(above, 0)], -1)
+        for i, (obj, rows) in enumerate(zip(objects, chains)):
+            writer.add_encoded(obj.name, obj.cls, rows.lo, rows.hi, rows.errors, rows.blobs, kind=MESH,
+                               parent=int(parent_of[i]), morphs=rows.morphs, fidelity=rows.fidelity)
             counts["mesh"] += 1
             wrote()
         for tname, t in terrains:
@@ -346,7 +379,8 @@ def build_store(
         else:
             tour_keys = [{**k, "eye": (np.asarray(k["eye"], np.float64) - origin).tolist()} for k in tour]
         writer.set_tour(tour_keys)
-        writer.set_meta(origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {},
+        writer.set_meta(shape_guard={"levels": levels, **({"proxies": proxies} if proxies else {})},
+                        origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {},
                         sources=list(source.sources), kinds=counts,
                         tree_instances=len(source.trees) if source.trees is not None else 0)
     timings["write"] = time.perf_counter() - t0
@@ -367,19 +401,33 @@ def build_store(
         "bytes": Path(path).stat().st_size,
         "seconds": round(time.perf_counter() - started, 2),
         "stages": {k: round(v, 2) for k, v in timings.items()},
-        "levels": _guard_summary(chains, tree),
+        "levels": levels,
+        **({"proxies": proxies} if proxies is not None else {}),
     }
 
 
-def _guard_summary(chains: list[tuple], tree) -> dict:
-    """How many coarse levels the shape guard measured, regenerated and dropped."""
-    measured = [q for c in chains if c[6] is not None for q in c[6][:-1]]
-    out = {"measured": len(measured), "regenerated": int(sum(c[7] for c in chains)),
-           "dropped": int(sum(c[8] for c in chains)),
-           "methods": {m: sum(q[0] == m for q in measured) for m in sorted({q[0] for q in measured})}}
-    if tree is not None and tree.fidelity:
-        out["hlod_measured"] = sum(q is not None for q in tree.fidelity)
-        out["hlod_regenerated"] = int(getattr(tree, "regenerated", 0))
-        out["hlod_dropped"] = int(getattr(tree, "dropped", 0))
-    return out
+def _guard_summary(chains: list[ChainRows], tree, bounds: Bounds) -> tuple[dict, dict | None]:
+    """What the shape guard did to the coarse levels, and to the HLOD proxies (None: no HLOD tree).
 
+    levels : measured (coarse levels kept), below_bounds (of those, checked again: none, unless
+             the guard is broken), regenerated (made by a
+             later method of the ladder than decimation), dropped (a coarser level no candidate
+             made within the bounds), methods (kept levels per method)
+    proxies: nodes (clustered), kept (with a proxy within the bounds), measured, regenerated,
+             dropped (not kept: the cut goes to their children), methods
+    """
+    measured = [q for c in chains if c.fidelity is not None for q in c.fidelity[:-1]]
+    below = sum(not bounds.passes(Fidelity(q[1], q[2], q[3], q[0]), q[4])
+                for c in chains if c.fidelity is not None for q in c.fidelity[:-1])
+    levels = {"measured": len(measured), "below_bounds": int(below), "regenerated": int(sum(c.regenerated for c in chains)),
+              "dropped": int(sum(c.dropped for c in chains)),
+              "methods": {m: sum(q[0] == m for q in measured) for m in sorted({q[0] for q in measured})}}
+    if tree is None:
+        return levels, None
+    fids = [q for q in tree.fidelity if q is not None]
+    closed = [bool(c) for q, c in zip(tree.fidelity, tree.closed) if q is not None]
+    proxies = {"nodes": int(tree.n_nodes), "kept": int(tree.kept.sum()), "measured": len(fids),
+               "below_bounds": sum(not bounds.passes(q, c) for q, c in zip(fids, closed)),
+               "regenerated": int(tree.regenerated), "dropped": int(tree.dropped),
+               "methods": {m: sum(q.method == m for q in fids) for m in sorted({q.method for q in fids})}}
+    return levels, proxies

@@ -3,14 +3,21 @@
 Three measures of a level against the object's finest level, made at build
 time for every coarse level and HLOD proxy:
 
-- **area ratio** — the level's surface area over the finest level's. Quadric
+- **area ratio** — the level's exposed surface area over the finest level's
+  (``surface.exposed_area``: the surface outside every other shell, so a
+  window frame sunk into a wall counts its face, not its buried back). Quadric
   decimation of a closed, box-like building collapses its walls first; what is
   left are roof slabs with a fraction of the area. Meaningful for closed meshes.
 - **silhouette IoU** — intersection over union of the two rendered coverage
   masks, from the six axis directions (orthographic, in the finest level's box,
   ``MASK`` × ``MASK`` pixels). Under orthographic projection the masks from
   +a and −a are mirror images, so three renders give all six; the reported
-  value is the least of them (the worst direction).
+  value is the least of them (the worst direction). An object fills its masks
+  and they are binary; an HLOD proxy stands for many objects, each a few of its
+  pixels, where a binary mask's half-pixel rounding would dominate the measure,
+  so its masks hold each pixel's covered fraction (``samples`` × ``samples``
+  points a pixel, as an antialiased render shows it) and the IoU is their
+  weighted form, Σ min / Σ max (which is the plain IoU for binary masks).
 - **FLIP** (Andersson et al. 2020, ``flip_evaluator``) of a shaded render of the
   level against one of the finest level, at the level's *switching distance*:
   where its geometric error projects to ``PIXEL_ERROR`` pixels on a
@@ -35,8 +42,10 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
+from .surface import exposed_area, is_closed, surface_area
+
 __all__ = ["Bounds", "Fidelity", "Reference", "reference", "measure", "surface_area", "is_closed",
-           "silhouettes", "silhouette_iou", "shaded", "MASK"]
+           "silhouettes", "silhouette_iou", "area_ratio", "shaded", "MASK"]
 
 MASK = 64  #: silhouette mask side, pixels
 PIXEL_ERROR = 1.0  #: projected geometric error at the switching distance, pixels
@@ -86,9 +95,10 @@ class Reference:
     faces: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
-    area: float
+    area: float  # exposed surface area
     closed: bool
-    masks: np.ndarray  # (3, MASK, MASK) bool
+    masks: np.ndarray  # (3, MASK, MASK) covered fraction of each pixel (0 or 1 when samples == 1)
+    samples: int = 1  # coverage points per pixel side
     renders: dict = field(default_factory=dict)  # FLIP render side → the finest level's shaded render
 
     def shaded(self, size: int) -> np.ndarray:
@@ -178,38 +188,32 @@ def _draw(tri: np.ndarray, shade: np.ndarray, h: int, w: int) -> tuple[np.ndarra
 # --------------------------------------------------------------------------- measures
 
 
-def surface_area(positions: np.ndarray, faces: np.ndarray) -> float:
-    tri = np.asarray(positions, np.float64)[np.asarray(faces, np.int64)]
-    return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
-
-
-def is_closed(faces: np.ndarray) -> bool:
-    """Every undirected edge is shared by an even number of faces (a union of closed shells)."""
-    f = np.asarray(faces, np.int64).reshape(-1, 3)
-    if f.shape[0] == 0:
-        return False
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    lo, hi = e.min(axis=1), e.max(axis=1)
-    key = np.sort(lo * (int(hi.max()) + 1) + hi)  # one integer per undirected edge
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    counts = np.diff(np.r_[starts, key.size])
-    return bool((counts % 2 == 0).all())
-
-
 def silhouettes(positions: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                res: int = MASK) -> np.ndarray:
-    """(3, res, res) bool coverage masks along x, y and z, each filling the box lo..hi's face."""
+                res: int = MASK, samples: int = 1) -> np.ndarray:
+    """Coverage masks along x, y and z, each filling the box lo..hi's face.
+
+    samples == 1: (3, res, res) bool; else (3, res, res) float32, each pixel's covered share
+    of its samples × samples points.
+    """
+    side = res * samples
     ext = np.maximum(np.asarray(hi) - np.asarray(lo), 1e-9)
-    uv = np.ascontiguousarray((np.asarray(positions, np.float64) - lo) / ext * res)
-    out = np.zeros((3, res, res), bool)
-    _cover(uv, np.ascontiguousarray(faces, np.int64), res, out)
-    return out
+    uv = np.ascontiguousarray((np.asarray(positions, np.float64) - lo) / ext * side)
+    out = np.zeros((3, side, side), bool)
+    _cover(uv, np.ascontiguousarray(faces, np.int64), side, out)
+    if samples == 1:
+        return out
+    return out.reshape(3, res, samples, res, samples).mean(axis=(2, 4), dtype=np.float32)
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:
-    union = np.logical_or(a, b).sum(axis=(1, 2))
-    inter = np.logical_and(a, b).sum(axis=(1, 2))
-    return float(np.min(np.where(union > 0, inter / np.maximum(union, 1), 1.0)))
+    """Least IoU over the three mask pairs: Σ min / Σ max (for bool masks, |a ∩ b| / |a ∪ b|)."""
+    if a.dtype == bool and b.dtype == bool:
+        union = np.logical_or(a, b).sum(axis=(1, 2))
+        inter = np.logical_and(a, b).sum(axis=(1, 2))
+    else:
+        union = np.maximum(a, b).sum(axis=(1, 2), dtype=np.float64)
+        inter = np.minimum(a, b).sum(axis=(1, 2), dtype=np.float64)
+    return float(np.min(np.where(union > 0, inter / np.maximum(union, 1e-12), 1.0)))
 
 
 def _view_basis() -> np.ndarray:
@@ -220,23 +224,36 @@ def _view_basis() -> np.ndarray:
     return np.stack([right, up, d])
 
 
+@numba.njit(cache=True, nogil=True)
+def _shade(p: np.ndarray, f: np.ndarray, basis: np.ndarray, centre: np.ndarray, radius: float, size: int,
+           light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-space triangles (m, 3, 3) seen along basis[2] and their Lambert shades (m,)."""
+    m = f.shape[0]
+    tri = np.empty((m, 3, 3))
+    shade = np.empty(m)
+    for t in range(m):
+        for c in range(3):
+            v = p[f[t, c]] - centre
+            tri[t, c, 0] = (v @ basis[0] / radius + 1.0) * size / 2
+            tri[t, c, 1] = (1.0 - v @ basis[1] / radius) * size / 2
+            tri[t, c, 2] = v @ basis[2]
+        a, b, d = p[f[t, 0]], p[f[t, 1]], p[f[t, 2]]
+        ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        vx, vy, vz = d[0] - a[0], d[1] - a[1], d[2] - a[2]
+        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        norm = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-30)
+        shade[t] = 0.15 + 0.75 * abs((nx * light[0] + ny * light[1] + nz * light[2]) / norm)
+    return tri, shade
+
+
 def shaded(positions: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray, size: int) -> np.ndarray:
     """(size, size, 3) float32 render in [0, 1]: Lambert-shaded grey over a sky colour, from ``_VIEW``."""
-    p = np.asarray(positions, np.float64)
-    f = np.asarray(faces, np.int64)
-    basis = _view_basis()
-    centre = (np.asarray(lo) + np.asarray(hi)) / 2
+    p = np.ascontiguousarray(positions, np.float64)
+    f = np.ascontiguousarray(faces, np.int64)
+    centre = (np.asarray(lo, np.float64) + np.asarray(hi, np.float64)) / 2
     radius = max(float(np.linalg.norm(np.asarray(hi) - np.asarray(lo))) / 2, 1e-9)
-    q = (p - centre) @ basis.T  # right, up, toward the camera
-    px = np.stack([(q[:, 0] / radius + 1) * size / 2, (1 - q[:, 1] / radius) * size / 2, q[:, 2]], axis=1)
-    tri = p[f]
-    u, v = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    n = np.column_stack([u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1], u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
-                         u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]])  # the cross product, without np.cross's overhead
-    n /= np.maximum(np.sqrt((n * n).sum(axis=1, keepdims=True)), 1e-30)
-    light = _LIGHT / np.linalg.norm(_LIGHT)
-    shade = 0.15 + 0.75 * np.abs(n @ light)
-    image, _ = _draw(px[f], shade, size, size)
+    tri, shade = _shade(p, f, _view_basis(), centre, radius, int(size), _LIGHT / np.linalg.norm(_LIGHT))
+    image, _ = _draw(tri, shade, size, size)
     rgb = np.where(image[..., None] >= 0, image[..., None] * np.array([0.93, 0.9, 0.85]), _BACKGROUND)
     return np.clip(rgb, 0.0, 1.0).astype(np.float32)
 
@@ -289,24 +306,31 @@ def flip_error(ref: Reference, positions: np.ndarray, faces: np.ndarray, error: 
     return float(mean)
 
 
-def reference(positions: np.ndarray, faces: np.ndarray) -> Reference:
+def reference(positions: np.ndarray, faces: np.ndarray, *, samples: int = 1) -> Reference:
+    """The finest level's side of the measures; samples: coverage points per mask pixel side
+    (1: binary masks, for one object)."""
     p = np.asarray(positions, np.float64)
     f = np.asarray(faces, np.int64)
     lo, hi = p.min(axis=0), p.max(axis=0)
     pad = 0.02 * np.maximum(hi - lo, 1e-6)
     lo, hi = lo - pad, hi + pad
-    return Reference(p, f, lo, hi, surface_area(p, f), is_closed(f), silhouettes(p, f, lo, hi))
+    return Reference(p, f, lo, hi, exposed_area(p, f), is_closed(f), silhouettes(p, f, lo, hi, samples=samples),
+                     samples)
 
 
 def silhouette_iou(ref: Reference, positions: np.ndarray, faces: np.ndarray) -> float:
     """Least silhouette IoU over the six axis directions of the level against ``ref``."""
-    return _iou(ref.masks, silhouettes(positions, faces, ref.lo, ref.hi))
+    return _iou(ref.masks, silhouettes(positions, faces, ref.lo, ref.hi, samples=ref.samples))
+
+
+def area_ratio(ref: Reference, positions: np.ndarray, faces: np.ndarray) -> float:
+    """The level's exposed surface area over the finest level's."""
+    return exposed_area(positions, faces) / max(ref.area, 1e-30)
 
 
 def measure(ref: Reference, positions: np.ndarray, faces: np.ndarray, error: float,
             method: str = "source", with_flip: bool = True) -> Fidelity:
     """The level's area ratio, least silhouette IoU over the six directions and FLIP vs ``ref``."""
-    area = surface_area(positions, faces)
     iou = silhouette_iou(ref, positions, faces)
     flip = flip_error(ref, positions, faces, error) if with_flip else float("nan")
-    return Fidelity(area / max(ref.area, 1e-30), iou, flip, method)
+    return Fidelity(area_ratio(ref, positions, faces), iou, flip, method)

@@ -25,20 +25,17 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-import fast_simplification
 import numpy as np
 
 from server.scene import blocks
-from server.scene.fidelity import Bounds, measure, reference
-from server.scene.footprints import footprint_proxy
-from server.scene.lod import clean_mesh, geometric_error
+from server.scene.fidelity import Bounds
+from server.scene.lod import geometric_error
+from server.scene.proxies import (DECIMATE_MAX_FACES, ERROR_SAMPLES, ProxyJob, merge, node_proxy, proxy_limit,
+                                  simplify)
 from server.scene.source import Mesh
 from server.scene.workers import process_pool
 
 __all__ = ["HLODTree", "build_hlod"]
-
-#: Fine vertices measured per node for its geometric error (the estimate's subsample).
-ERROR_SAMPLES = 1000
 
 
 @dataclass
@@ -48,11 +45,17 @@ class HLODTree:
     parent        : (N,) int32, -1 for the root; parent[i] < i
     depth         : (N,) int16, 0 at the root
     lo, hi        : (N, 3) float64 — box of the node's objects and of its proxy
-    error         : (N,) float64 — geometric error of the proxy (metres), non-decreasing toward the root
-    proxies       : N meshes, the merged simplified stand-ins of the subtrees
+    error         : (N,) float64 — geometric error of the proxy (metres), non-decreasing toward the
+                    root; for a node not kept, the largest error under it
+    proxies       : N meshes, the stand-ins of the subtrees (empty for a node not kept)
     object_parent : (n,) int32 — the (lowest) inner node each object hangs under
     fidelity      : per node, the proxy's measures (``Fidelity``) or None when unmeasured
-    regenerated, dropped : proxies rebuilt by the next method / left below the bounds
+    kept          : (N,) bool — the node has a proxy (guarded: one within the bounds)
+    closed        : (N,) bool — guarded: the area bound applied to the node (its objects are closed)
+    regenerated, dropped : proxies made by a later method of the ladder / nodes not kept
+
+    The kept forest (what a store holds) links each kept node and each object to its nearest
+    kept ancestor: ``kept_parent`` and ``kept_object_parent``.
     """
 
     parent: np.ndarray
@@ -63,6 +66,8 @@ class HLODTree:
     proxies: list[Mesh]
     object_parent: np.ndarray
     fidelity: list = field(default_factory=list)
+    kept: np.ndarray = field(default=None)  # type: ignore[assignment]
+    closed: np.ndarray = field(default=None)  # type: ignore[assignment]
     regenerated: int = 0
     dropped: int = 0
     _child_start: np.ndarray = field(init=False, repr=False)
@@ -71,6 +76,10 @@ class HLODTree:
 
     def __post_init__(self) -> None:
         n_nodes = self.parent.shape[0]
+        if self.kept is None:
+            self.kept = np.ones(n_nodes, bool)
+        if self.closed is None:
+            self.closed = np.zeros(n_nodes, bool)
         # BFS order makes each node's children one contiguous, sorted run of ids.
         counts = np.bincount(self.parent[1:], minlength=n_nodes)
         self._child_start = np.concatenate([[1], 1 + np.cumsum(counts)]).astype(np.int64)
@@ -98,6 +107,24 @@ class HLODTree:
     def objects(self, node: int) -> np.ndarray:
         """Objects hanging directly under ``node`` (int64, ascending; empty above the lowest level)."""
         return self._object_order[self._object_start[node] : self._object_start[node + 1]]
+
+    def _kept_ancestor(self) -> np.ndarray:
+        """(N,) int64: each node's nearest kept ancestor, itself included (−1: none)."""
+        up = np.full(self.n_nodes, -1, np.int64)
+        for d in range(self.height):  # parents before children: one depth at a time
+            at = np.flatnonzero(self.depth == d)
+            above = np.where(self.parent[at] >= 0, up[np.maximum(self.parent[at], 0)], -1)
+            up[at] = np.where(self.kept[at], at, above)
+        return up
+
+    def kept_parent(self) -> np.ndarray:
+        """(N,) int64: each node's nearest kept proper ancestor (−1: none); parents before children."""
+        up = self._kept_ancestor()
+        return np.where(self.parent >= 0, up[np.maximum(self.parent, 0)], -1)
+
+    def kept_object_parent(self) -> np.ndarray:
+        """(n,) int64: each object's nearest kept ancestor node (−1: the object is a root)."""
+        return self._kept_ancestor()[self.object_parent]
 
     def leaves_under(self, node: int) -> np.ndarray:
         """Every object in the subtree of ``node`` (int64, ascending)."""
@@ -153,61 +180,6 @@ def _cluster(centres: np.ndarray, fanout: int, leaf_size: int):
 # --------------------------------------------------------------------------- proxies
 
 
-def _merge(meshes: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    offsets = np.cumsum([0] + [p.shape[0] for p, _ in meshes[:-1]])
-    pos = np.concatenate([p for p, _ in meshes])
-    fac = np.concatenate([f + o for (_, f), o in zip(meshes, offsets)])
-    return pos, fac
-
-
-def _cluster_vertices(pos: np.ndarray, fac: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
-    """Vertex clustering (Rossignac & Borrel): weld vertices per grid cell, drop collapsed and repeated faces."""
-    key = np.floor((pos - pos.min(axis=0)) / cell).astype(np.int64)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    centre = np.zeros((counts.size, 3))
-    np.add.at(centre, inverse, pos)
-    f = inverse[fac]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
-    _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
-    return clean_mesh(centre / counts[:, None], f[np.sort(first)])
-
-
-def _simplify(pos: np.ndarray, fac: np.ndarray, limit: int, stalled: bool = False) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Decimate to at most ``limit`` faces.
-
-    Quadric decimation stalls on many small disjoint parts (each stops near a
-    tetrahedron), so when it cannot reach ``limit`` the result is vertex-clustered
-    on a coarsening grid, which merges neighbouring parts, and decimated again.
-    The simplifier aims a little under ``limit`` as it may overshoot by a few faces.
-    A stalled decimation is slow (it runs all its passes), so when the parts are
-    known to be stalled already (``stalled``: a child needed clustering) the
-    first attempt is skipped. Returns positions, faces, and whether it stalled.
-    """
-    if limit < 1:
-        return pos[:0], fac[:0], False
-    target = max(1, int(limit * 0.95))
-    if stalled:
-        p, f = pos, fac
-    else:
-        p, f = clean_mesh(*fast_simplification.simplify(pos, fac, target_count=target))
-        if f.shape[0] <= limit:
-            return p, f, False
-    diag = float(np.linalg.norm(pos.max(axis=0) - pos.min(axis=0)))
-    cell = diag / (8.0 * math.sqrt(limit))  # from fine to coarse: the first grid that fits keeps the most shape
-    retried = False
-    while True:
-        cp, cf = _cluster_vertices(p, f, cell)
-        if cf.shape[0] <= limit:
-            return cp, cf, True
-        if not retried and cf.shape[0] <= 1.5 * limit:  # once: a stalled decimation is slow
-            retried = True
-            sp, sf = clean_mesh(*fast_simplification.simplify(cp, cf, target_count=target))
-            if sf.shape[0] <= limit:
-                return sp, sf, True
-        cell *= 1.3
-
-
 def build_hlod(
     lo: np.ndarray,
     hi: np.ndarray,
@@ -221,16 +193,18 @@ def build_hlod(
     workers: int = 1,
     points: Sequence[np.ndarray] | None = None,
     bounds: Bounds | None = None,
+    boxes: Sequence[tuple[np.ndarray, np.ndarray] | None] | None = None,
+    min_saving: float = 0.4,
 ) -> HLODTree:
-    """Cluster n objects into an HLOD tree and build every inner node's merged proxy.
+    """Cluster n objects into an HLOD tree and build every inner node's proxy.
 
     lo, hi          : (n, 3) object boxes
     proxies         : n meshes, each object's stand-in inside its parent's merge
                       (the builder passes each object's coarsest level)
     fanout          : most inner-node children of an inner node (≥ 2)
     leaf_size       : most objects under a lowest inner node (≥ 1)
-    max_proxy_faces : cap on a node proxy's faces; a proxy also has at most half
-                      the faces of its children's merged proxies
+    max_proxy_faces : cap on a node proxy's faces; unguarded, a proxy also has at most
+                      half the faces of its children's merged proxies
     object_error    : (n,) geometric error of each object's proxy, added into its
                       parent's error (zeros when omitted)
     progress        : called as progress(done, total) after each inner node
@@ -238,12 +212,19 @@ def build_hlod(
                       does not depend on it
     points          : n arrays of each object's full-detail vertices (a subsample); a node's
                       error is then measured from its subtree's points to its proxy
-    bounds          : build proxies as 2.5-D footprint sets guarded by these bounds
-                      (``_node_proxy``); None: merge and decimate, unmeasured
+    bounds          : choose each proxy among measured candidates within these bounds
+                      (``proxies.node_proxy``); a node with none is not kept. None: merge
+                      and decimate, unmeasured, every node kept
+    boxes           : with bounds, n LoD1 boxes (``blocks.oriented_box`` of each object's
+                      finest level; None where there is none)
+    min_saving      : with bounds, a proxy saves at least this share of the cost (faces and
+                      draws, ``proxies.proxy_limit``) of what it replaces in a cut: its kept
+                      children's proxies (or what stands in for a child not kept) and its
+                      objects' proxies
 
     Without ``points``, a node's error is the estimated Hausdorff distance from the merged
     children's vertices to its proxy plus the largest child error; with them it is measured
-    from the subtree's full-detail points, and made no less than its children's.
+    from the subtree's full-detail points, and made no less than the errors under it.
     """
     lo = np.asarray(lo, np.float64).reshape(-1, 3)
     hi = np.asarray(hi, np.float64).reshape(-1, 3)
@@ -258,39 +239,70 @@ def build_hlod(
     tree = HLODTree(parent, depth, np.empty((n_nodes, 3)), np.empty((n_nodes, 3)), np.zeros(n_nodes),
                     [None] * n_nodes, object_parent)  # type: ignore[list-item]
     tree.fidelity = [None] * n_nodes
+    if bounds is not None:
+        if boxes is None:
+            boxes = [blocks.oriented_box(m.positions, m.faces) for m in proxies]
     stalled = np.zeros(n_nodes, bool)  # the node's proxy needed vertex clustering
+    standing: list[list[Mesh]] = [[] for _ in range(n_nodes)]  # what a node not kept leaves in a cut
     pool = process_pool(workers) if workers > 1 else None
     done = 0
     try:
         # Bottom-up one depth at a time: the nodes of a depth are independent.
         for d in range(int(depth.max()), -1, -1):
             nodes = np.flatnonzero(depth == d)[::-1]
-            tasks, flags, pts, masks = [], [], [], []
+            tasks, flags, pts, parts_of = [], [], [], []
             for node in nodes:
-                pts.append(None if points is None else np.concatenate(
-                    [np.zeros((0, 3))] + [points[o] for o in tree.leaves_under(node)]))
-                flags.append(bool(stalled[tree.children(node)].any()))
-                parts = [(tree.proxies[k], False) for k in tree.children(node)] + [
-                    (proxies[o], True) for o in tree.objects(node)]
-                tasks.append([(m.positions, m.faces) for m, _ in parts if m.n_faces > 0])
-                masks.append([is_obj for m, is_obj in parts if m.n_faces > 0])
+                under = tree.leaves_under(node)
+                pts.append(np.concatenate([np.zeros((0, 3))] + [points[o] for o in under])
+                           if points is not None else None)
+                parts = [m for k in tree.children(node)
+                         for m in ([tree.proxies[k]] if tree.kept[k] else standing[k])]
+                parts += [proxies[o] for o in tree.objects(node)]
+                parts = [m for m in parts if m.n_faces > 0]
+                parts_of.append(parts)
+                if bounds is None:
+                    flags.append(bool(stalled[tree.children(node)].any()))
+                    tasks.append([(m.positions, m.faces) for m in parts])
+                    continue
+                faces = sum(m.n_faces for m in parts)
+                tasks.append(ProxyJob(
+                    objects=[(proxies[o].positions, proxies[o].faces) for o in under],
+                    boxes=[boxes[o] for o in under],
+                    parts=[(m.positions, m.faces) for m in parts] if faces <= DECIMATE_MAX_FACES else [],
+                    points=pts[-1] if pts[-1] is not None else np.zeros((0, 3)),
+                    limit=proxy_limit(faces, len(parts), min_saving, max_proxy_faces)))
+            if bounds is None:
+                args = (tasks, [max_proxy_faces] * len(tasks), flags, pts)
+                fn = _merged_proxy
+            else:
+                args = (tasks, [bounds] * len(tasks))
+                fn = node_proxy
             if pool is None:
-                results = map(_node_proxy, tasks, [max_proxy_faces] * len(tasks), flags, pts,
-                              [bounds] * len(tasks), masks)
+                results = map(fn, *args)
             else:
                 chunk = max(1, min(32, len(tasks) // (4 * workers)))
-                results = pool.map(_node_proxy, tasks, [max_proxy_faces] * len(tasks), flags, pts,
-                                   [bounds] * len(tasks), masks, chunksize=chunk)
-            for node, (p, f, err, stalled[node], fid, regen, drop) in zip(nodes, results):
-                tree.fidelity[node] = fid
-                tree.regenerated += regen
-                tree.dropped += drop
+                results = pool.map(fn, *args, chunksize=chunk)
+            for node, parts, out in zip(nodes, parts_of, results):
+                if bounds is None:
+                    p, f, err, stalled[node] = out
+                else:
+                    p, f, err = out.positions, out.faces, out.error
+                    tree.fidelity[node] = out.fidelity
+                    tree.closed[node] = out.closed
+                    tree.regenerated += out.regenerated
+                    if p is None:  # nothing passed: not kept, its parts stand in a cut
+                        tree.kept[node] = False
+                        tree.dropped += 1
+                        standing[node] = parts
+                        p, f = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
                 kids, objs = tree.children(node), tree.objects(node)
                 box_lo = np.concatenate([tree.lo[kids], lo[objs], p[:, :3]]).min(axis=0)
                 box_hi = np.concatenate([tree.hi[kids], hi[objs], p[:, :3]]).max(axis=0)
-                if np.isnan(err):  # nothing left to draw: the whole subtree vanishes, an error of its extent
-                    err = float(np.linalg.norm(box_hi - box_lo))
                 child_err = max(tree.error[kids].max(initial=0.0), obj_err[objs].max(initial=0.0))
+                if not tree.kept[node]:
+                    err = 0.0  # its error is the largest under it, which its kept ancestors take on
+                elif np.isnan(err):  # nothing left to draw: the whole subtree vanishes, an error of its extent
+                    err = float(np.linalg.norm(box_hi - box_lo))
                 tree.proxies[node] = Mesh(p, f)
                 tree.lo[node], tree.hi[node] = box_lo, box_hi
                 tree.error[node] = max(err, child_err) if points is not None else err + child_err
@@ -303,56 +315,18 @@ def build_hlod(
     return tree
 
 
-def _node_proxy(parts: list[tuple[np.ndarray, np.ndarray]], max_faces: int, stalled: bool,
-                points: np.ndarray | None = None, bounds: Bounds | None = None,
-                objects_mask: Sequence[bool] | None = None) -> tuple:
-    """One node's proxy from its children's meshes.
+def _merged_proxy(parts: list[tuple[np.ndarray, np.ndarray]], max_faces: int, stalled: bool,
+                  points: np.ndarray | None = None) -> tuple:
+    """Unguarded: the children's meshes merged and decimated to half their faces (at most ``max_faces``).
 
-    Returns positions, faces, its own error (NaN when empty), stalled, and its measures
-    (``Fidelity`` against the merged children, or None), regenerated, dropped.
-    With ``bounds`` the candidates, in ladder order, are the parts' LoD1 boxes merged (objects'
-    parts; ``objects_mask`` tells them from child proxies), a 2.5-D footprint set
-    (``footprints``) and merge-and-decimate; the first within the bounds and the face limit is
-    kept (a later one: regenerated); when none passes the best stays and is counted (dropped).
-    The error is measured from ``points`` (the subtree's full-detail vertices) when given.
+    Returns positions, faces, its own error (NaN when empty) and whether decimation stalled. The
+    error is measured from ``points`` (the subtree's full-detail vertices) when given.
     """
     if not parts:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), 0.0, False, None, 0, 0
-    objects_mask = [True] * len(parts) if objects_mask is None else list(objects_mask)
-    pos, fac = _merge(parts)
-    limit = min(fac.shape[0] // 2, max_faces)
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), 0.0, False
+    pos, fac = merge(parts)
+    p, f, stalled = simplify(pos, fac, min(fac.shape[0] // 2, max_faces), stalled)
+    if f.shape[0] == 0:
+        return p, f, float("nan"), stalled
     target = pos if points is None or len(points) == 0 else points
-    if bounds is None:
-        p, f, stalled = _simplify(pos, fac, limit, stalled)
-        if f.shape[0] == 0:
-            return p, f, float("nan"), stalled, None, 0, 0
-        return p, f, geometric_error(target, p, f, samples=ERROR_SAMPLES), stalled, None, 0, 0
-    ref = reference(pos, fac)
-    regenerated = dropped = 0
-    best = None
-    for k, method in enumerate(("blocks", "footprint", "decimate")):
-        if method == "blocks":  # every part's LoD1 box, merged (a part already a proxy stays)
-            made = [blocks.oriented_box(p_, f_) if n_obj else None for (p_, f_), n_obj in zip(parts, objects_mask)]
-            p, f = _merge([m if m is not None else part for m, part in zip(made, parts)])
-        elif method == "footprint":
-            p, f = footprint_proxy(pos, fac, limit)
-        else:
-            p, f, stalled = _simplify(pos, fac, limit, stalled)
-        if f.shape[0] == 0 or f.shape[0] > limit:
-            continue
-        err = geometric_error(target, p, f, samples=ERROR_SAMPLES)
-        fid = measure(ref, p, f, err, method, with_flip=False)
-        ok = bounds.passes(fid, ref.closed)
-        if ok:
-            fid = measure(ref, p, f, err, method)
-            ok = bounds.passes(fid, ref.closed)
-        if best is None or (ok, fid.iou) > (best[0], best[4].iou):
-            best = (ok, p, f, err, fid)
-        if ok:
-            regenerated = int(k > 0)
-            break
-    if best is None:
-        return pos[:0], fac[:0], float("nan"), stalled, None, 0, 0
-    ok, p, f, err, fid = best
-    dropped = int(not ok)  # below the bounds: the best candidate stays, counted, with its measured error
-    return p, f, err, stalled, fid, regenerated, dropped
+    return p, f, geometric_error(target, p, f, samples=ERROR_SAMPLES), stalled

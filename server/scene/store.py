@@ -70,11 +70,12 @@ TABLES = {
 }
 #: Meta keys every store has (``SceneWriter.commit`` writes them, ``SceneStore.open`` requires them).
 #: Optional tables: a store without them still opens (older builds); ``fidelity`` holds each
-#: measured representation's method, area ratio, least silhouette IoU and FLIP (``server.scene.fidelity``).
+#: measured representation's method, area ratio, least silhouette IoU, FLIP (``server.scene.fidelity``)
+#: and whether the area bound applies to it (``closed``; NULL in older builds: it did).
 OPTIONAL_TABLES = {
     "fidelity": (
         "CREATE TABLE fidelity (rep INTEGER PRIMARY KEY, method TEXT NOT NULL, area_ratio REAL NOT NULL, "
-        "iou REAL NOT NULL, flip REAL)"
+        "iou REAL NOT NULL, flip REAL, closed INTEGER)"
     ),
 }
 META_KEYS = ("schema_version", "name", "bounds", "tour", "start", "class_names")
@@ -164,12 +165,16 @@ class SceneStore:
         return [found[r] for r in ids]
 
     def fidelity(self) -> dict[str, np.ndarray] | None:
-        """Measured representations: rep, method, area_ratio, iou, flip (NaN: not rendered); None if unmeasured."""
+        """Measured representations: rep, method, area_ratio, iou, flip (NaN: not rendered), closed
+        (whether the area bound applies); None if unmeasured."""
         conn = self._connection()
         if "fidelity" not in _table_names(conn):
             return None
-        rows = conn.execute("SELECT rep, method, area_ratio, iou, flip FROM fidelity ORDER BY rep").fetchall()
+        has_closed = any(r[1] == "closed" for r in conn.execute("PRAGMA table_info(fidelity)"))
+        rows = conn.execute("SELECT rep, method, area_ratio, iou, flip, " + ("closed" if has_closed else "NULL")
+                            + " FROM fidelity ORDER BY rep").fetchall()
         return {
+            "closed": np.array([r[5] is None or bool(r[5]) for r in rows], bool),
             "rep": np.array([r[0] for r in rows], np.int64),
             "method": np.array([r[1] for r in rows], object),
             "area_ratio": np.array([r[2] for r in rows], np.float64),

@@ -143,8 +143,9 @@ class SceneWriter:
         kind   : one of ``MESH, HLOD, TERRAIN, TREES``
         parent : an object already added (its id), or −1
         morphs : per level, None or an encoded ``proto.morph`` map onto the previous level
-        fidelity : per level, None or (method, area ratio, silhouette IoU, FLIP) as measured
-                 against the finest level (``server.scene.fidelity``)
+        fidelity : per level, None or (method, area ratio, silhouette IoU, FLIP[, closed]) as
+                 measured against the finest level (``server.scene.fidelity``); closed: whether
+                 the area bound applies (the finest level is closed)
         """
         self._check_open()
         k = len(blobs)
@@ -184,9 +185,9 @@ class SceneWriter:
                 if len(fidelity) != k:
                     raise ValueError(f"object {name!r}: {k} levels but {len(fidelity)} fidelity entries")
                 self._conn.executemany(
-                    "INSERT INTO fidelity VALUES (?, ?, ?, ?, ?)",
+                    "INSERT INTO fidelity VALUES (?, ?, ?, ?, ?, ?)",
                     [(self._n_reps + i, str(q[0]), float(q[1]), float(q[2]),
-                      None if not np.isfinite(q[3]) else float(q[3]))
+                      None if not np.isfinite(q[3]) else float(q[3]), None if len(q) < 5 else int(bool(q[4])))
                      for i, q in enumerate(fidelity) if q is not None])
         except sqlite3.Error as exc:
             raise StoreError(f"{self.path}: cannot add object {name!r}: {exc}") from None

@@ -5,7 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from server.scene.fidelity import Bounds
 from server.scene.hlod import build_hlod
 from server.scene.source import Mesh
 
@@ -148,3 +151,57 @@ def test_workers_give_the_same_tree():
     b = build_hlod(lo, hi, proxies, fanout=4, leaf_size=4, workers=2)
     assert np.array_equal(a.error, b.error) and np.array_equal(a.lo, b.lo)
     assert all(np.array_equal(x.positions, y.positions) for x, y in zip(a.proxies, b.proxies))
+
+
+def _walk_up(tree, node: int) -> int:
+    """Nearest kept ancestor of ``node`` (itself included), by walking the parent links."""
+    while node >= 0 and not tree.kept[node]:
+        node = int(tree.parent[node])
+    return node
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_kept_forest_links_to_the_nearest_kept_ancestor(seed) -> None:
+    lo, hi, proxies = _scene(60, seed=seed % 7)
+    tree = build_hlod(lo, hi, proxies, fanout=3, leaf_size=4)
+    tree.kept = np.random.default_rng(seed).uniform(size=tree.n_nodes) < 0.5
+    up, above = tree.kept_parent(), tree.kept_object_parent()
+    for j in range(tree.n_nodes):
+        assert up[j] == (-1 if tree.parent[j] < 0 else _walk_up(tree, int(tree.parent[j])))
+        assert up[j] < j
+    for o in range(tree.n_objects):
+        assert above[o] == _walk_up(tree, int(tree.object_parent[o]))
+
+
+def _guarded(bounds: Bounds, n: int = 120):
+    lo, hi, proxies = _scene(n, seed=4)
+    points = [m.positions for m in proxies]
+    return proxies, build_hlod(lo, hi, proxies, fanout=4, leaf_size=6, bounds=bounds, points=points)
+
+
+def test_guarded_proxies_pass_the_bounds_and_save_faces() -> None:
+    bounds = Bounds()
+    proxies, tree = _guarded(bounds)
+    assert tree.kept.any()
+    for node in range(tree.n_nodes):
+        if not tree.kept[node]:
+            assert tree.proxies[node].n_faces == 0 and tree.fidelity[node] is None
+            continue
+        assert bounds.passes(tree.fidelity[node], bool(tree.closed[node]))
+        # what the node replaces in a cut: its kept children, or what stands in for the others
+        stand = [k for k in range(tree.n_nodes) if tree.kept[k] and tree.kept_parent()[k] == node]
+        replaced = sum(tree.proxies[k].n_faces for k in stand)
+        replaced += sum(proxies[o].n_faces for o in np.flatnonzero(tree.kept_object_parent() == node))
+        assert tree.proxies[node].n_faces <= 0.6 * replaced
+    up = tree.kept_parent()
+    linked = np.flatnonzero(tree.kept & (up >= 0))
+    assert np.all(tree.error[up[linked]] >= tree.error[linked])  # error grows toward the roots
+    assert tree.dropped == int((~tree.kept).sum())
+
+
+def test_a_node_without_a_passing_proxy_is_not_kept() -> None:
+    """Bounds nothing can meet: no node is kept and every object is a root of the kept forest."""
+    _, tree = _guarded(Bounds(iou=1.01), n=40)
+    assert not tree.kept.any() and tree.dropped == tree.n_nodes
+    assert np.all(tree.kept_object_parent() == -1) and np.all(tree.kept_parent() == -1)

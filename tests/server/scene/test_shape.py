@@ -13,6 +13,7 @@ from server.scene.blocks import block_model, oriented_box
 from server.scene.builder import BuildOptions, build_store
 from server.scene.data import data_file
 from server.scene.fidelity import Bounds, _draw, is_closed, measure, reference, surface_area
+from server.scene.proxies import merge as _merge
 from server.scene.generate.megacity import megacity
 from server.scene.importers import load_source
 from server.scene.index import HLOD, MESH
@@ -50,8 +51,14 @@ def test_decimation_that_loses_the_walls_is_not_kept() -> None:
     assert shaped.chain.faces[0] < m.n_faces * 0.2
 
 
-def _check_store(path, bounds: Bounds = Bounds()) -> dict:
-    """Every measured coarse mesh level passes the bounds (area for closed full levels); returns the measures."""
+def _mesh(geometry) -> tuple[np.ndarray, np.ndarray]:
+    return np.asarray(geometry.positions, np.float64), np.asarray(geometry.indices, np.int64).reshape(-1, 3)
+
+
+def _check_store(path, bounds: Bounds = Bounds(), remeasure: int = 6) -> dict:
+    """Every measured coarse mesh level and every HLOD proxy passes the bounds (area where the
+    measured mesh is closed); a few of each are measured again from the stored geometry, so the
+    table cannot pass what the geometry does not. Returns counts."""
     with SceneStore.open(path) as store:
         idx = store.index
         fid = store.fidelity()
@@ -69,8 +76,38 @@ def _check_store(path, bounds: Bounds = Bounds()) -> dict:
         owner = np.repeat(np.arange(meshes.size), idx.rep_count[meshes] - 1)
         area = fid["area_ratio"][rows]
         assert (np.minimum(area, 1 / area)[closed[owner]] >= bounds.area).all()
-        hlod = np.flatnonzero(idx.rep_object >= 0)[idx.object_kind[idx.rep_object] == HLOD]
-        return {"coarse": coarse.size, "hlod_measured": int(np.isin(hlod, fid["rep"]).sum()), "hlod": hlod.size}
+        for r in coarse[:: max(1, coarse.size // remeasure)][:remeasure]:  # again, from the stored geometry
+            o = idx.rep_object[r]
+            level, finest = (_mesh(decode_geometry(b)) for b in store.geometries([int(r), int(idx.rep_first[o] + idx.rep_count[o] - 1)]))
+            again = measure(reference(*finest), *level, 1.0, with_flip=False)
+            assert again.iou >= bounds.iou - 0.02
+            assert not is_closed(finest[1]) or min(again.area_ratio, 1 / again.area_ratio) >= bounds.area - 0.03
+        # HLOD proxies: all measured, all within bounds; a few against their subtree's coarsest levels
+        nodes = np.flatnonzero(idx.object_kind == HLOD)
+        reps = idx.rep_first[nodes]
+        at = np.searchsorted(fid["rep"], reps)
+        assert (fid["rep"][np.minimum(at, fid["rep"].size - 1)] == reps).all()
+        assert (fid["iou"][at] >= bounds.iou).all() and not (fid["flip"][at] > bounds.flip).any()
+        node_area = np.minimum(fid["area_ratio"][at], 1 / fid["area_ratio"][at])
+        assert (node_area[fid["closed"][at]] >= bounds.area).all()
+        for node in nodes[:: max(1, nodes.size // remeasure)][:remeasure]:
+            under = [o for o in meshes if node in _ancestors(idx.object_parent, o)]
+            objs = [_mesh(decode_geometry(b)) for b in store.geometries(idx.rep_first[under].tolist())]
+            proxy = _mesh(decode_geometry(store.geometries([int(idx.rep_first[node])])[0]))
+            ref = reference(*_merge(objs), samples=4)
+            again = measure(ref, *proxy, 1.0, with_flip=False)
+            assert again.iou >= bounds.iou - 0.02
+            closed_objects = all(is_closed(f) for _, f in objs)
+            assert not closed_objects or min(again.area_ratio, 1 / again.area_ratio) >= bounds.area - 0.03
+        return {"coarse": coarse.size, "hlod": nodes.size}
+
+
+def _ancestors(parent: np.ndarray, o: int) -> set[int]:
+    out = set()
+    while parent[o] >= 0:
+        o = int(parent[o])
+        out.add(o)
+    return out
 
 
 @pytest.mark.parametrize("name", ["interior/AC20-FZK-Haus.city.json", "city/multi_lod.city.json",
@@ -82,21 +119,32 @@ def test_real_buildings_keep_only_levels_within_bounds(tmp_path, name) -> None:
     out = tmp_path / "s.db"
     summary = build_store(out, source, options=BuildOptions(workers=1, hlod_min=16))
     got = _check_store(out)
-    assert summary["levels"]["measured"] == got["coarse"]
-    assert got["hlod_measured"] == got["hlod"]
+    assert summary["levels"]["measured"] == got["coarse"] and summary["levels"]["below_bounds"] == 0
+    proxies = summary.get("proxies", {"kept": 0, "below_bounds": 0})
+    assert proxies["kept"] == got["hlod"] and proxies["below_bounds"] == 0
 
 
 def test_megacity_block_has_walls_at_street_level(tmp_path) -> None:
-    """Every kept coarse level passes; an along-the-street view of the coarsest cut covers the walls."""
+    """Every kept coarse level and proxy passes; an along-the-street view of the coarsest cut (the
+    roots of the kept HLOD forest at their coarsest) covers the walls."""
     src, _, _ = megacity(64)
     out = tmp_path / "m.db"
     summary = build_store(out, src, options=BuildOptions(workers=1))
-    _check_store(out)
+    got = _check_store(out)
     assert summary["levels"]["dropped"] > 0  # the guard removed the wall-less levels decimation made
+    assert got["hlod"] > 0 and summary["proxies"]["kept"] == got["hlod"]
+    from server.scene.inspect import format_report, inspect_store
+
+    report = inspect_store(out)
+    assert report["kinds"]["hlod"]["fidelity"]["measured"] == got["hlod"]
+    assert report["shape_guard"]["proxies"] == summary["proxies"]
+    assert "\n".join(format_report(report)).count("all within bounds") == 2  # buildings and proxies
     with SceneStore.open(out) as store:
         idx = store.index
-        meshes = np.flatnonzero((idx.object_kind == MESH) & (idx.object_class == idx.class_names.index("building")))
-        coarse = [decode_geometry(b) for b in store.geometries(idx.rep_first[meshes].tolist())]
+        building = idx.class_names.index("building")
+        meshes = np.flatnonzero((idx.object_kind == MESH) & (idx.object_class == building))
+        roots = np.flatnonzero((idx.object_parent == -1) & ((idx.object_kind == HLOD) | (idx.object_class == building)))
+        coarse = [decode_geometry(b) for b in store.geometries(idx.rep_first[roots].tolist())]
         full = [decode_geometry(b) for b in store.geometries((idx.rep_first[meshes] + idx.rep_count[meshes] - 1).tolist())]
 
     def view(geoms):
@@ -144,3 +192,34 @@ def test_is_closed_sees_a_missing_face(w, d, h, drop) -> None:
     m = trimesh.creation.box((w, d, h))
     assert is_closed(m.faces)
     assert not is_closed(np.delete(m.faces, drop, axis=0))
+
+
+def test_inspect_reports_levels_and_proxies_against_the_bounds(tmp_path) -> None:
+    """inspect counts, per kind and level (depth for proxies), what is below the bounds — an open
+    mesh's area ratio is not — names the worst, and prints the build's guard counts."""
+    from server.scene.inspect import format_report, inspect_store
+    from server.scene.writer import SceneWriter, encode_levels
+
+    box = trimesh.creation.box((10, 10, 10))
+    tent = trimesh.creation.box((10, 10, 10))
+    tent.faces = tent.faces[:-2]  # open: its area ratio does not count
+    path = tmp_path / "s.db"
+    with SceneWriter(path, name="t") as w:
+        for name, mesh, q in (("good", box, ("prune", 0.95, 0.97, 0.02, True)),
+                              ("thin", box, ("decimate", 0.3, 0.95, 0.02, True)),
+                              ("open", tent, ("decimate", 0.3, 0.95, 0.02, False))):
+            lo, hi, blobs, _ = encode_levels([(mesh.vertices, mesh.faces)] * 2, [None, None], reorder=False)
+            w.add_encoded(name, "building", lo, hi, [0.5, 0.0], blobs, fidelity=[q, ("source", 1, 1, float("nan"), True)])
+        lo, hi, blobs, _ = encode_levels([(box.vertices, box.faces)], [None], reorder=False)
+        w.add_encoded("hlod_0", "hlod", lo, hi, [1.0], blobs, kind=HLOD, fidelity=[("box", 0.9, 0.8, 0.1, True)])
+        w.set_tour([{"t": 0.0, "eye": [0, -40, 5], "forward": [0, 1, 0], "up": [0, 0, 1]},
+                    {"t": 1.0, "eye": [0, -30, 5], "forward": [0, 1, 0], "up": [0, 0, 1]}])
+        w.set_meta(shape_guard={"levels": {"measured": 3, "below_bounds": 0, "regenerated": 1, "dropped": 2},
+                                "proxies": {"nodes": 3, "kept": 1, "below_bounds": 0, "regenerated": 0, "dropped": 2}})
+    report = inspect_store(path)
+    mesh, hlod = report["kinds"]["mesh"]["fidelity"], report["kinds"]["hlod"]["fidelity"]
+    assert mesh["measured"] == 3 and mesh["below_bounds"] == 1 and mesh["worst"][0]["name"] in ("thin", "open")
+    assert hlod["measured"] == 1 and hlod["below_bounds"] == 1 and hlod["levels"][0]["depth"] == 0
+    assert hlod["worst"][0]["name"] == "hlod_0" and hlod["worst"][0]["method"] == "box"
+    text = "\n".join(format_report(report))
+    assert "1 below bounds" in text and "1 of 3 nodes kept" in text and "2 not kept" in text

@@ -182,10 +182,14 @@ def test_hierarchical_selection_on_a_city_refines_within_budget_and_cuts_validly
     model = CostModel(c_vertex=2e-7)
     roots = int((lv.parent < 0).sum())
     full = model.predict(float(lv.rep_vertices[lv.rep_first + lv.rep_count - 1][kids == 0].sum()))
+    # Below the coarsest cut (the visible roots of the kept HLOD forest at their coarsest) the solver still
+    # draws that cut, and says it is over budget; from there it refines within any budget.
+    least = select(scene, view, model, 1e-9, "hierarchical", memory=Memory())
+    assert least.stats["over_budget"] and least.cost < 0.6 * full
     costs = []
-    for budget in (0.1 * full, 0.5 * full, 2 * full):
+    for budget in (least.cost + 0.1 * (full - least.cost), least.cost + 0.5 * (full - least.cost), 2 * full):
         choice = select(scene, view, model, budget, "hierarchical", memory=Memory())
-        assert choice.cost <= budget * (1 + 1e-9)
+        assert choice.cost <= budget * (1 + 1e-9) and not choice.stats["over_budget"]
         costs.append(choice.cost)
         # The choice is a valid cut of the visible forest.
         cam = _cameras(view, 20.0, None)[0]
@@ -197,7 +201,8 @@ def test_hierarchical_selection_on_a_city_refines_within_budget_and_cuts_validly
         forest = Forest.of(lv.parent, z, z, np.arange(z.shape[1])[None, :] < lv.rep_count[:, None], visible)
         assert is_valid_cut(forest, level)
     assert costs[0] <= costs[1] <= costs[2]
-    assert choice.reps.size > 10 * roots  # ample budget: refined far below the roots
+    # ample budget: refined below every root, down to the leaves
+    assert choice.reps.size > roots and (kids[rows] == 0).all()
 
 
 def test_a_nodes_screen_size_never_exceeds_its_visible_childrens_together():
