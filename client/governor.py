@@ -9,13 +9,12 @@ levels it holds and up through the finer ones sent ahead, each with its cost
 change (vertices) and its value (benefit per vertex). The steps, sorted by
 value (values are made concave along each chain, so a finer increment never
 comes before a coarser one of the same object), form one list; a state is a
-prefix of it. Each frame the governor predicts the frame's time from the model
-units of a state (``FramePredictor``: the time per unit measured over its last
-frames, with the frame's fixed part where that is measured to predict better),
-then takes decrements of lowest value until the prediction fits its aim (a share
-of the target), or increments of highest value while it fits (outside a band
-around the aim, so noise does not make it chatter; and none while a decrement is
-still ramping).
+prefix of it. Each frame the governor predicts the frame's time from the units
+(vertices) of a state (``FramePredictor``: the time per unit measured over its
+last frames, with the frame's fixed part where that is measured to predict
+better), then takes decrements of lowest value until the prediction fits its aim
+(a share of the target), or increments of highest value while it fits (outside a
+band around the aim, so noise does not make it chatter).
 
 A change is never drawn at once: each object's offset from the plan ramps over
 ``ramp`` seconds (a change of two levels or more as a chain of adjacent morphs,
@@ -228,9 +227,11 @@ class Governor:
             self.lo, self.hi = lo, hi
             self.m = lad.plan_steps
 
-    def _decide(self, lad: GovernorLadder, ramping_down: bool) -> int:
-        """The number of steps to take: shrink to the aim when the prediction is above its band, grow to it
-        when below (and no decrement is still ramping), else stay."""
+    def _decide(self, lad: GovernorLadder) -> int:
+        """The number of steps to take: shrink to the aim when the prediction for the state is above its band,
+        grow to it when below, else stay. The prediction is of the state the levels ramp to, at the rate the
+        drawn frames measured, so a decrement still ramping does not hold growth back: with hundreds of keys
+        one always is, and the frames stayed a fifth under the aim."""
         aim = self.steer * self.target
         fits = self.predictor.units_for(aim)  # units a frame at the aim may draw
         if fits is None:
@@ -240,7 +241,7 @@ class Governor:
         fit = int(max(np.searchsorted(cum, fits - lad.fixed, side="right") - 1, 0))
         if now > (1.0 + self.slack) * aim:
             return fit
-        if now < (1.0 - self.slack) * aim and not ramping_down:
+        if now < (1.0 - self.slack) * aim:
             return max(fit, m)
         return m
 
@@ -261,11 +262,9 @@ class Governor:
         li_c = np.minimum(li, max(lad.key.size - 1, 0))
         if lad.key.size:
             on = (li < lad.key.size) & (lad.key[li_c] == self.gkey)
-            planned = np.where(on, lad.offsets(self.m)[li_c], 0.0)
         else:  # an empty ladder: every key ramps back to the plan
-            on, li_c, planned = np.zeros(self.gkey.size, bool), np.zeros(self.gkey.size, np.int64), 0.0
-        ramping_down = bool((self.g > planned + 1e-9).any())
-        self.m = self._decide(lad, ramping_down)
+            on, li_c = np.zeros(self.gkey.size, bool), np.zeros(self.gkey.size, np.int64)
+        self.m = self._decide(lad)
         # Until a frame is measured there is nothing to correct the plan with: it is drawn as it is.
         goal = np.zeros(self.g.size)
         if self.predictor.rate is not None and lad.key.size:

@@ -80,8 +80,9 @@ class FrameCostModel(Protocol):
         """Fold in one measured frame (its per-algorithm ``terms`` when the client reported them)."""
         ...
 
-    def tail_ratio(self, q: float = 0.95) -> float:
-        """The budget's divisor that makes the q-th percentile frame, not the mean one, meet the target."""
+    def tail_ratio(self, q: float = 0.95, floor: float = 1.0) -> float:
+        """The budget's divisor that makes the q-th percentile frame, not the mean one, meet the target (at least
+        ``floor``: below 1 it also corrects a model that prices frames too high)."""
         ...
 
     def report(self) -> dict | None:
@@ -161,7 +162,7 @@ class CostModel:
         """``FrameCostModel.observe_frame``: Zach's feedback reads the frame's time and vertices alone."""
         return self.update(time, vertices)
 
-    def tail_ratio(self, q: float = 0.95) -> float:
+    def tail_ratio(self, q: float = 0.95, floor: float = 1.0) -> float:
         """``FrameCostModel.tail_ratio``: the mean frame is budgeted, as Zach does."""
         return 1.0
 

@@ -326,8 +326,10 @@ class OnlineCostModel:
             return self.update(time, vertices)
         return self.observe(time, *terms, splats)
 
-    def tail_ratio(self, q: float = 0.95, least: int = 20, cap: float = 1.5) -> float:
-        """The q-quantile of measured ÷ predicted frame time over recent frames (held out), at least 1.
+    def tail_ratio(self, q: float = 0.95, least: int = 20, cap: float = 1.5, floor: float = 1.0) -> float:
+        """The q-quantile of measured ÷ predicted frame time over recent frames (held out), at least ``floor``
+        (1 by default: a budget for the tail never exceeds the mean's; below 1, it corrects a model that prices
+        frames too high).
 
         A budget divided by it makes the q-th percentile frame, not the average one, meet the target:
         the machine's own noise (a shared CPU, a driver's stalls) is then part of what is budgeted.
@@ -336,7 +338,7 @@ class OnlineCostModel:
         afterwards, so one stalled stretch cannot starve the picture."""
         if len(self._ratios) < least:
             return float(cap)
-        return float(np.clip(np.quantile(np.fromiter(self._ratios, float), q), 1.0, cap))
+        return float(np.clip(np.quantile(np.fromiter(self._ratios, float), q), floor, cap))
 
     def update(self, time: float, vertices: int) -> bool:
         """``CostModel.update``: only the time and the vertices are known (flat, no draws, no pixels)."""

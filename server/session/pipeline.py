@@ -33,7 +33,11 @@ from .gate import through_gate
 from .mirror import CacheMirror
 from .table import SceneTable
 
-__all__ = ["Pipeline"]
+__all__ = ["Pipeline", "MEAN_FLOOR"]
+
+#: With the governor, the least median measured ÷ predicted ratio the budget is divided by (it then exceeds
+#: the target by up to 1 / MEAN_FLOOR in model seconds, for a model found to price frames that much too high).
+MEAN_FLOOR = 0.67
 
 
 class Pipeline:
@@ -120,7 +124,10 @@ class Pipeline:
             # is budgeted, as far as the governor can reach. Its steps down save a share ``shed`` of the
             # selection (the last ladder's), so the tail frame still fits when (1 − shed) × the selection at
             # the tail ratio does; a scene whose objects have few coarser levels is budgeted as without it.
-            tail = min(max(cost.tail_ratio(0.5), tail * (1.0 - self.shed)), tail)
+            # The median ratio may fall below 1 (to MEAN_FLOOR): a model that prices the frames it is shown too
+            # high would otherwise leave the time asked for unspent, and the governor holds what it misjudges.
+            mean = cost.tail_ratio(0.5, floor=MEAN_FLOOR)
+            tail = min(max(mean, tail * (1.0 - self.shed)), tail)
         self.last_tail = tail
         budget = max(hello.target_frame_time / tail - cost.overhead, 0.25 * hello.target_frame_time)
         # The only clock the selection sees: an anytime solver stops at select_limit with its best so far.

@@ -539,3 +539,20 @@ def test_a_model_pricing_work_too_high_still_learns_from_light_frames() -> None:
     v = np.array([0, 2e5, 0])
     truth = 5e-4 + 1e-7 * v.sum() + 2e-6 * 100
     assert model.predict_frame(v * 2, v, v * 3, np.array([0, 100.0, 0])) / truth < 1.3
+
+
+def test_the_median_ratio_may_say_the_model_prices_frames_too_high():
+    """``tail_ratio(0.5, floor=…)`` goes below 1 where frames come in under their held-out prediction (the
+    governor's budget then spends the time the model would leave), and never below the floor; the default
+    floor of 1 keeps a tail budget from exceeding the mean's."""
+    from server.select.cost_online import OnlineCostModel
+
+    model = OnlineCostModel(algorithms=1, c_vertex=1e-6)
+    rng = np.random.default_rng(4)
+    for _ in range(30):  # every frame comes in at 60 % of the model's prediction for it, whatever it learns
+        v = rng.uniform(2e4, 6e4)
+        guess = float(model.predict_terms(np.array([0.0]), np.array([v]), np.array([0.0]), 0, 1.0).sum())
+        model.observe(0.6 * (guess + model.overhead), [0.0], [v], [0.0], [1.0])
+    assert model.tail_ratio(0.5) == 1.0
+    assert model.tail_ratio(0.5, floor=0.5) == pytest.approx(0.6, abs=0.02)
+    assert model.tail_ratio(0.5, floor=0.9) == 0.9
