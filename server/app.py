@@ -42,6 +42,8 @@ from .limits import MEASUREMENT_SOLVERS, WS_MAX_SIZE, Admission, RateGuard, Repl
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .scene.store import SceneStore
 from .session import Session, SessionConfig, SessionState
+from .session.payloads import packed
+from .session.table import SceneTable
 from .startup import ServeError, bind_listener, check_state_url, load_scenes
 from .state import MemoryStateStore, StateStore, open_state_store
 
@@ -73,6 +75,8 @@ def create_app(
     limits = limits or ReplicaLimits()
     store: StateStore = state if state is not None else MemoryStateStore()
     replica = replica or socket.gethostname()
+    for s in scenes.values():  # what every session of a scene shares, built once, before any session
+        SceneTable.of(s.index).prepare(config.importance)
     conns: dict[str, Connection] = {}
     sessions: dict[str, Session] = {}  # the same, by session (tests and /sessions look here)
     metrics = Metrics(lambda: len(conns))
@@ -290,7 +294,7 @@ def create_app(
             """In a worker: run what is due, encode it, and snapshot the state if a delta went out."""
             began = time.thread_time()
             out = session.poll(now)
-            frames = [(encode(m), m.code if isinstance(m, Error) else None) for m in out]
+            frames = [(encode(m, packed=packed), m.code if isinstance(m, Error) else None) for m in out]
             delta = any(isinstance(m, Delta) for m in out)
             cpu = time.thread_time() - began
             blob = session.snapshot() if delta else None
@@ -306,7 +310,7 @@ def create_app(
                     metrics.errors.labels(code).inc()
 
         def encoded(messages: list[BaseModel]) -> list[tuple[bytes, str | None]]:
-            return [(encode(m), m.code if isinstance(m, Error) else None) for m in messages]
+            return [(encode(m, packed=packed), m.code if isinstance(m, Error) else None) for m in messages]
 
         async def first(data, t: float) -> list[BaseModel]:
             """A frame before the session is open: a hello (resumed if it asks and may) or a refusal."""

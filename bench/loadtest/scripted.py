@@ -28,6 +28,7 @@ import numpy as np
 from bench.loadtest.client import ClientConfig, RendererModel, SimulatedClient, unframe
 from proto.codec import encode
 from proto.messages import Delta, Ping
+from server.session.payloads import packed
 
 __all__ = ["ScriptedRun", "run_scripted"]
 
@@ -107,7 +108,7 @@ def run_scripted(
         """The session's messages reach client i ``latency`` / 2 later; its answers the session ``latency`` later."""
         for m in out:
             began = time.thread_time()
-            data = encode(m)
+            data = encode(m, packed=packed)
             cpu["encode"] += time.thread_time() - began
             if only is None or only == i:
                 run.frames[i].append(data)

@@ -30,6 +30,7 @@ from ..select.snapshot import dump_fields, load_fields
 from ..select.solvers.candidates import NO_LIMIT, TimeLimit
 from .gate import through_gate
 from .mirror import CacheMirror
+from .payloads import Payloads
 from .table import SceneTable
 
 __all__ = ["Pipeline"]
@@ -233,28 +234,16 @@ class Pipeline:
 
     def _adds(self, new: np.ndarray, mirror: CacheMirror) -> tuple[list[RepresentationAdd], list[ModelAdd], int]:
         """The adds for ``new`` (meshes with their morph maps, tree groups' instance lists), the store's tree
-        models with the session's first tree group, and the payload bytes of both."""
-        store, table = self.store, self.table
-        index = store.index
-        blobs = store.geometries(new.tolist()) if new.size else []
-        trees = table.rep_trees[new]
-        morph_maps = [None] * new.size
-        if self.morph.morph and new.size:
-            with_map = new[table.rep_morph[new] & ~trees]
-            maps = dict(zip(with_map.tolist(), store.morphs(with_map.tolist()))) if with_map.size else {}
-            morph_maps = [maps.get(r) for r in new.tolist()]
-        add = [
-            RepresentationAdd(rep=int(r), object=int(table.rep_object[r]), level=int(table.rep_level[r]),
-                              geometry=blob, morph=mm, kind="trees" if t else "mesh")
-            for r, blob, mm, t in zip(new.tolist(), blobs, morph_maps, trees.tolist())
-        ]
+        models with the session's first tree group, and the payload bytes of both — as the scene's shared
+        cache holds them (``payloads``: read and packed once for every session)."""
+        payloads = Payloads.of(self.store)
+        add = payloads.adds(new.tolist(), self.morph.morph) if new.size else []
         models: list[ModelAdd] = []
-        if trees.any() and not mirror.models_sent:  # the groups' instances name these: sent once, kept
-            mirror.models_sent = True
-            n = int(index.model_points.shape[0])
-            models = [ModelAdd(model=i, points=b) for i, b in enumerate(store.model_geometries(range(n)))]
-        geometry = sum(len(b) for b in blobs)
-        maps = sum(len(m) for m in morph_maps if m)
+        if new.size and self.table.rep_trees[new].any() and not mirror.models_sent:
+            mirror.models_sent = True  # the groups' instances name these: sent once, kept
+            models = payloads.models()
+        geometry = sum(len(a.geometry) for a in add)
+        maps = sum(len(a.morph) for a in add if a.morph)
         nbytes = geometry + maps + sum(len(m.points) for m in models)
         if geometry:  # what morph maps add to the geometry they come with, as this session sees it
             self.morph_share += 0.3 * (maps / geometry - self.morph_share)
