@@ -84,9 +84,9 @@ def create_app(
 
     def n_sessions() -> int:  # connections that said their hello: the ones holding a session slot
         return sum(1 for c in conns.values() if c.slot or c.session.state is not SessionState.AWAIT_HELLO)
-    pool = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="walkstream-select")
+    pool = ThreadPoolExecutor(max_workers=limits.threads, thread_name_prefix="walkstream-select")
     # Selections, fairly: a session that spends more CPU than its neighbours waits behind them.
-    fair = FairPool(limits.workers, name="walkstream-fair")
+    fair = FairPool(limits.threads, name="walkstream-fair")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
