@@ -112,7 +112,7 @@ class Session:
         """A fresh cost model, clock sync, delivery estimate, timer, pipeline and (empty) mirror."""
         c = self.config
         cost: FrameCostModel = (CostModel(c_vertex=c.c_vertex, alpha=c.alpha) if c.cost_model == "zach" else
-                                OnlineCostModel(algorithms=len(ALGORITHMS), c_vertex=c.c_vertex))
+                                OnlineCostModel(algorithms=len(ALGORITHMS), c_vertex=c.c_vertex, batch=True))
         return (cost, ClockSync(), Delivery(bandwidth=c.bandwidth),
                 Timing(c.tau, c.safety, c.select_limit, c.clock_wait), Pipeline(c),
                 CacheMirror(None, c.cache_bytes, self.id))
