@@ -35,14 +35,15 @@ def _back(d, row: np.ndarray, n: int, cast=float) -> None:
     d.extend(cast(v) for v in row[:n])
 
 
-def fold_frames(model, times: np.ndarray, z: np.ndarray, only_least: np.ndarray, kernel) -> None:
+def fold_frames(model, times: np.ndarray, z: np.ndarray, only_least: np.ndarray, kernel, models: tuple,
+                least_slack: float, least_rise: float) -> None:
     """Fold frames into ``model`` (an ``OnlineCostModel``) with ``kernel`` (``kernels.fold.fold``).
 
     times : (F,) float64 measured seconds; z : (F, 3R + 3) float64 the frames in the model's z layout
     only_least : (F,) uint8 — frames that drew nothing (they only lower the lightest-frame bound)
+    models, least_slack, least_rise : the model's ladder (simplest first) and its lightest-frame bound's constants
     """
-    from .cost_online import LEAST_RISE, LEAST_SLACK, MODELS
-
+    MODELS, LEAST_SLACK, LEAST_RISE = models, least_slack, least_rise  # noqa: N806 (the model's own names)
     r = model.algorithms
     big = 3 * r + 3
     rungs = [model.rungs[name] for name in MODELS]

@@ -335,7 +335,7 @@ class OnlineCostModel:
             from .cost_fold import fold_frames
 
             fold_frames(self, np.array([q[0] for q in queue]), np.stack([q[1] for q in queue]),
-                        np.array([q[2] for q in queue], np.uint8), ready.fold.fold)
+                        np.array([q[2] for q in queue], np.uint8), ready.fold.fold, MODELS, LEAST_SLACK, LEAST_RISE)
             return
         for time, z, empty in queue:
             self._fold(time, z, empty)
