@@ -37,6 +37,8 @@ import numpy as np
 
 from proto.morph import LevelRamps
 
+from . import kernels
+
 __all__ = ["Transitions", "MorphScheduler", "mark", "rep_parents"]
 
 
@@ -63,10 +65,14 @@ def mark(rep_parent: np.ndarray, black: np.ndarray, new: np.ndarray) -> tuple[np
     new        : (s,) int — the new solution's
     Returns ``kind`` (s,) int8 — +1 up-morph (a black ancestor), −1 down-morph
     (grey: ancestor of black), 0 none — and ``source`` (s,) int64: for an
-    up-morph the black ancestor, else −1. One vectorised pass per hierarchy level.
+    up-morph the black ancestor, else −1. One vectorised pass per hierarchy level (the reference), or one
+    compiled pass once the kernels are ready (``kernels.delta.mark``).
     """
     parent = np.asarray(rep_parent, np.int64)
     new = np.asarray(new, np.int64)
+    ready = kernels.compiled()
+    if ready is not None:
+        return ready.delta.mark(parent, np.asarray(black, np.int64), new)
     is_black = np.zeros(parent.size, bool)
     is_black[np.asarray(black, np.int64)] = True
     grey = np.zeros(parent.size, bool)

@@ -26,9 +26,10 @@ import numpy as np
 from proto.manifest import digest
 from proto.messages import Ack
 
+from ..select import kernels
 from .table import SceneTable
 
-__all__ = ["CacheMirror"]
+__all__ = ["CacheMirror", "expand"]
 
 log = logging.getLogger("walkstream.session")
 
@@ -105,11 +106,15 @@ class CacheMirror:
 
     # ------------------------------------------------------------------ deltas
 
-    def plan(self, selected: np.ndarray, needed: np.ndarray, seq: int) -> tuple[np.ndarray, np.ndarray]:
+    def plan(self, selected: np.ndarray, needed: np.ndarray, seq: int, ranges=None) -> tuple[np.ndarray, np.ndarray]:
         """Bring the mirror to what delta ``seq`` needs, within the budget; returns (reps to add, reps to drop).
 
         selected : reps the selection draws (meshes, drawn tree groups) — first in line when not all fits
         needed : every rep the schedule draws from its window on (ramp intermediates, morph sources, …)
+        ranges : (key, lo, hi) — more of those, as each object key's level range (``expand``)
+
+        Once the kernels are ready the expansion and the whole update are one compiled pass
+        (``kernels.delta.plan``); the numpy steps below are its reference.
 
         When what is needed alone exceeds the budget, it is sent in priority
         order (the selection before the rest, coarse before fine, small before
@@ -117,6 +122,12 @@ class CacheMirror:
         counted in ``over_budget``.
         """
         rep_bytes, rep_level = self.table.rep_bytes, self.table.rep_level
+        selected, needed = np.asarray(selected, np.int64), np.asarray(needed, np.int64)
+        ready = kernels.compiled()
+        if ready is not None:
+            return self._plan_compiled(ready.delta.plan, selected, needed, seq, ranges)
+        if ranges is not None:
+            needed = np.concatenate([expand(*ranges), needed])
         want = np.union1d(needed, selected).astype(np.int64)
         later = ~np.isin(want, selected)
         want = want[np.lexsort((rep_bytes[want], rep_level[want], later))]
@@ -140,6 +151,26 @@ class CacheMirror:
         self.over_budget += int((~self.resident[want]).sum())
         self._records[seq] = _Sent(*self.held, add=new, drop=drop)
         if len(self._records) > 256:  # a client that stopped acking must not grow this without bound
+            self._records.pop(min(self._records))
+        return new, drop
+
+    def _plan_compiled(self, kernel, selected, needed, seq, ranges) -> tuple[np.ndarray, np.ndarray]:
+        key, lo, hi = ranges if ranges is not None else (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+        t = self.table
+        new, drop, d_count, d_bytes, d_digest, evicted, over = kernel(
+            selected, np.asarray(key, np.int64), np.asarray(lo, np.float64), np.asarray(hi, np.float64), needed,
+            t.rep_bytes, t.rep_level, t.rep_mix, self.budget, self.resident, self.sent, self.last_used, seq,
+            self.resync, self.held[1])
+        self.held[0] += int(d_count)
+        self.held[1] += int(d_bytes)
+        self.held[2] ^= int(d_digest)
+        self.evicted += int(evicted)
+        if self.resync:
+            self.resync, self._epoch = False, seq
+            self.resyncs += 1
+        self.over_budget += int(over)
+        self._records[seq] = _Sent(*self.held, add=new, drop=drop)
+        if len(self._records) > 256:
             self._records.pop(min(self._records))
         return new, drop
 
@@ -284,3 +315,15 @@ class CacheMirror:
         mirror.models_sent, mirror.resync = flags
         mirror.recount()
         return mirror
+
+
+def expand(key: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Representation ids key + l for every whole level l in [floor(lo), ceil(hi)], per row."""
+    if key.size == 0:
+        return np.zeros(0, np.int64)
+    first = np.floor(lo + 1e-9).astype(np.int64)
+    count = np.ceil(hi - 1e-9).astype(np.int64) - first + 1
+    count = np.maximum(count, 1)
+    base = np.repeat(key + first, count)
+    step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    return np.unique(base + step)

@@ -139,7 +139,6 @@ class Pipeline:
         self.drawn = reps
         self.prev_rep[:] = -1
         self.prev_rep[table.rep_object[reps]] = reps
-        needed = _expand(tr.needed_key, tr.needed_lo, tr.needed_hi)
         vegetation, resolution, ramps = [], [], Morphs()
         drawn_groups = groups = np.zeros(0, np.int64)
         if choice.x is not None and choice.x_reps is not None:
@@ -156,7 +155,8 @@ class Pipeline:
         below = below[ok & mirror.resident[np.maximum(below, 0)]]
         # The previous ladder governs until this delta's switch, and its steps ramp back after: kept too.
         new, drop = mirror.plan(np.concatenate([reps, drawn_groups]),
-                                np.concatenate([needed, groups, ahead, below, self.ladder_to]), seq)
+                                np.concatenate([groups, ahead, below, self.ladder_to]), seq,
+                                ranges=(tr.needed_key, tr.needed_lo, tr.needed_hi))
         ladder = self._ladder(reps, algorithm, view, cost, mirror) if hello.governor else Ladder.empty()
         self.ladder_to = ladder.to
         if new.size and rank is not None:
@@ -249,14 +249,3 @@ class Pipeline:
             self.morph_share += 0.3 * (maps / geometry - self.morph_share)
         return add, models, nbytes
 
-
-def _expand(key: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Representation ids key + l for every whole level l in [floor(lo), ceil(hi)], per row."""
-    if key.size == 0:
-        return np.zeros(0, np.int64)
-    first = np.floor(lo + 1e-9).astype(np.int64)
-    count = np.ceil(hi - 1e-9).astype(np.int64) - first + 1
-    count = np.maximum(count, 1)
-    base = np.repeat(key + first, count)
-    step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
-    return np.unique(base + step)

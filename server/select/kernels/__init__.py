@@ -8,6 +8,7 @@ Modules, one concern each, all pure functions of arrays:
 - ``coherent``: the incremental solver's coherent step in one pass;
 - ``view``: culling, projection and the F&S benefit of a selection's cameras;
 - ``fold``: the online cost model's frame reports, folded in one pass;
+- ``delta``: a delta's morph marking, and its level ranges expanded into the cache mirror's update;
 - ``jit``: how they are all compiled.
 
 Each has its vectorised numpy reference beside the code that calls it, and the
@@ -42,6 +43,7 @@ class Compiled:
     coherent: ModuleType
     view: ModuleType
     fold: ModuleType
+    delta: ModuleType
 
 
 _mode: bool | None = None  # None: kernels once warm; True: always (waits for the compile); False: never
@@ -55,12 +57,12 @@ _start_lock = threading.Lock()
 def _warm() -> None:
     global _ready, _error
     try:
-        from . import coherent, cut, fold, hull, view
+        from . import coherent, cut, delta, fold, hull, view
         from .jit import compile_module
 
-        for module in (hull, cut, coherent, view, fold):
+        for module in (hull, cut, coherent, view, fold, delta):
             compile_module(module)
-        _ready = Compiled(hull=hull, cut=cut, coherent=coherent, view=view, fold=fold)
+        _ready = Compiled(hull=hull, cut=cut, coherent=coherent, view=view, fold=fold, delta=delta)
     except Exception as e:  # numba missing or broken: the numpy reference stays in charge
         _error = e
     finally:
