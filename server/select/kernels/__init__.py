@@ -9,6 +9,7 @@ Modules, one concern each, all pure functions of arrays:
 - ``view``: culling, projection and the F&S benefit of a selection's cameras;
 - ``fold``: the online cost model's frame reports, folded in one pass;
 - ``delta``: a delta's morph marking, and its level ranges expanded into the cache mirror's update;
+- ``motion``: the path predictor's robust line fit;
 - ``jit``: how they are all compiled.
 
 Each has its vectorised numpy reference beside the code that calls it, and the
@@ -44,6 +45,7 @@ class Compiled:
     view: ModuleType
     fold: ModuleType
     delta: ModuleType
+    motion: ModuleType
 
 
 _mode: bool | None = None  # None: kernels once warm; True: always (waits for the compile); False: never
@@ -57,12 +59,12 @@ _start_lock = threading.Lock()
 def _warm() -> None:
     global _ready, _error
     try:
-        from . import coherent, cut, delta, fold, hull, view
+        from . import coherent, cut, delta, fold, hull, motion, view
         from .jit import compile_module
 
-        for module in (hull, cut, coherent, view, fold, delta):
+        for module in (hull, cut, coherent, view, fold, delta, motion):
             compile_module(module)
-        _ready = Compiled(hull=hull, cut=cut, coherent=coherent, view=view, fold=fold, delta=delta)
+        _ready = Compiled(hull=hull, cut=cut, coherent=coherent, view=view, fold=fold, delta=delta, motion=motion)
     except Exception as e:  # numba missing or broken: the numpy reference stays in charge
         _error = e
     finally:
