@@ -46,6 +46,7 @@ from .session.payloads import packed
 from .session.table import SceneTable
 from .startup import ServeError, load_scenes
 from .state import MemoryStateStore, StateStore
+from .ticker import Ticker
 
 __all__ = ["create_app", "load_scenes", "ServeError", "WS_MAX_SIZE"]
 
@@ -90,6 +91,20 @@ def create_app(
     # Selections, fairly: a session that spends more CPU than its neighbours waits behind them.
     fair = FairPool(limits.threads, name="walkstream-fair")
 
+    def poll_encoded(session: Session, now: float, culled) -> tuple[list[tuple[bytes, str | None]], bool, float,
+                                                                     bytes | None]:
+        """In a tick (``ticker``): run what is due, encode it, and snapshot the state if a delta went out."""
+        began = time.thread_time()
+        out = session.poll(now, culled)
+        frames = [(encode(m, packed=packed), m.code if isinstance(m, Error) else None) for m in out]
+        delta = any(isinstance(m, Delta) for m in out)
+        cpu = time.thread_time() - began
+        blob = session.snapshot() if delta else None
+        return frames, delta, cpu, blob
+
+    # Polls that fall due together run as one tick: their selections culled and projected in one pass.
+    ticker = Ticker(fair, poll_encoded, observe=metrics.tick)
+
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         refresh = asyncio.create_task(metrics.keep_fresh())
@@ -120,6 +135,7 @@ def create_app(
     app.state.store = store
     app.state.pool = pool
     app.state.fair = fair
+    app.state.ticker = ticker
 
     def register(conn: Connection) -> None:
         conns[conn.session.id] = conn
@@ -306,16 +322,6 @@ def create_app(
         register(conn)
         guard = RateGuard(limits, now)
 
-        def poll_encoded(session: Session, now: float) -> tuple[list[tuple[bytes, str | None]], bool, float, bytes | None]:
-            """In a worker: run what is due, encode it, and snapshot the state if a delta went out."""
-            began = time.thread_time()
-            out = session.poll(now)
-            frames = [(encode(m, packed=packed), m.code if isinstance(m, Error) else None) for m in out]
-            delta = any(isinstance(m, Delta) for m in out)
-            cpu = time.thread_time() - began
-            blob = session.snapshot() if delta else None
-            return frames, delta, cpu, blob
-
         async def send(frames: list[tuple[bytes, str | None]]) -> None:
             for frame, code in frames:
                 conn.send_since = time.monotonic()
@@ -407,7 +413,7 @@ def create_app(
                                                                      "the session is closed")
                             continue
                         if deadline is not None and now >= deadline:
-                            frames, delta, cpu, blob = await fair.run(session.id, poll_encoded, session, now)
+                            frames, delta, cpu, blob = await ticker.poll(session)
                             await send(frames)
                             if delta:
                                 metrics.selection_seconds.observe(time.monotonic() - deadline)

@@ -45,6 +45,13 @@ class FairPool:
         with self._cond:
             return self._total.get(key, 0.0)
 
+    def charge(self, key: Hashable, cpu: float) -> None:
+        """Charge ``key`` CPU seconds spent for it outside this pool's own jobs (a batch's share)."""
+        with self._cond:
+            now = self._clock()
+            self._spent[key] = (self._decayed(key, now) + cpu, now)
+            self._total[key] = self._total.get(key, 0.0) + cpu
+
     def forget(self, key: Hashable) -> None:
         with self._cond:
             self._spent.pop(key, None)

@@ -64,6 +64,9 @@ class Metrics:
             "walkstream_selection_cpu_seconds", "worker thread CPU time of one poll that produced a delta",
             buckets=LATENCY_BUCKETS, registry=r,
         )
+        self.ticks = Counter("walkstream_ticks", "batches of due polls run together (one shared culling pass each)",
+                             registry=r)
+        self.tick_polls = Counter("walkstream_tick_polls", "polls run in those batches", registry=r)
         self.bytes_out = Counter("walkstream_bytes_out", "websocket payload bytes sent to clients", registry=r)
         self.messages_in = Counter("walkstream_messages_in", "websocket frames received from clients", registry=r)
         self.errors = Counter("walkstream_errors", "error frames sent, by code", ["code"], registry=r)
@@ -81,6 +84,11 @@ class Metrics:
         self.state_failures = Counter(
             "walkstream_state_failures", "session-state saves or loads that failed", ["op"], registry=r,
         )
+
+    def tick(self, polls: int) -> None:
+        """A batch of ``polls`` ran (``server.ticker``)."""
+        self.ticks.inc()
+        self.tick_polls.inc(polls)
 
     def refresh(self) -> None:
         """Write this worker's own figures where the others' sum reads them (multiprocess mode only)."""

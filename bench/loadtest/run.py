@@ -242,6 +242,8 @@ def _result(cfg: ClientConfig, clients: list[SimulatedClient], totals: _Totals, 
     bout = None
     if "walkstream_bytes_out_total" in end.values:
         bout = (end.values["walkstream_bytes_out_total"] - a.values.get("walkstream_bytes_out_total", 0.0)) / wall
+    ticks = end.values.get("walkstream_ticks_total", 0.0) - a.values.get("walkstream_ticks_total", 0.0)
+    tick_polls = end.values.get("walkstream_tick_polls_total", 0.0) - a.values.get("walkstream_tick_polls_total", 0.0)
     server_errors = {k: int(v - first.errors.get(k, 0.0)) for k, v in end.errors.items()
                      if v - first.errors.get(k, 0.0) > 0}
     target_ms = cfg.target * 1e3
@@ -278,6 +280,7 @@ def _result(cfg: ClientConfig, clients: list[SimulatedClient], totals: _Totals, 
         frames_skipped=skipped,
         generator_cpu_per_session_s=(end_totals["cpu"] - a_totals["cpu"]) / (sessions * wall) if sessions else None,
         generator_cores=cpu_self,
+        polls_per_tick=tick_polls / ticks if ticks > 0 else None,
         server_cores=cpu / wall if cpu is not None else None,
         mirror_checks=None if mirror is None else mirror["mirror_checks"],
         mirror_mismatch=None if mirror is None else mirror["mirror_mismatch"],

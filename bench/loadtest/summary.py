@@ -59,6 +59,7 @@ class PhaseResult:
     generator_cpu_per_session_s: float | None = None
     generator_cores: float | None = None  # the load generator's CPU seconds per second (this process)
     server_cores: float | None = None  # the server's CPU seconds per second, all its processes
+    polls_per_tick: float | None = None  # due polls the server ran together, on average (``server.ticker``)
     frames_skipped: int = 0
     mirror_checks: int | None = None
     mirror_mismatch: int | None = None
@@ -114,8 +115,9 @@ def format_summary(s: LoadSummary) -> list[str]:
         f"  sessions opened {s.sessions_opened} / {s.clients}, connected at the end {s.connected_at_end}",
         f"  selections {s.selections_per_s:.1f}/s ({fmt(_pct(s.selections_due_share), '.0f')} % of those due); "
         f"latency p50 {fmt(s.selection_p50_ms)} ms, p99 "
-        f"{fmt(s.selection_p99_ms)} ms (server, {s.selections_measured} selections; worker CPU p99 "
-        f"{fmt(s.selection_cpu_p99_ms)} ms); delta inter-arrival p99 {fmt(s.delta_interarrival_p99_ms)} ms (client)",
+        f"{fmt(s.selection_p99_ms)} ms (server, {s.selections_measured} selections; worker CPU p50 "
+        f"{fmt(s.selection_cpu_p50_ms)}, p99 {fmt(s.selection_cpu_p99_ms)} ms; {fmt(s.polls_per_tick)} polls per "
+        f"tick); delta inter-arrival p99 {fmt(s.delta_interarrival_p99_ms)} ms (client)",
         f"  received {s.bytes_per_s / 1e6:.3f} MB/s; server CPU {fmt(s.server_cpu_per_session_s, '.4f')} s per "
         f"session-second ({fmt(s.server_cores, '.2f')} cores, "
         f"{'all ' + str(s.workers) + ' worker processes' if s.workers else 'as the server reports it'}) → "

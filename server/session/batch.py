@@ -15,11 +15,20 @@ from typing import Sequence
 
 from pydantic import BaseModel
 
+from ..select.selection import cull_many
 from .core import Session
 
-__all__ = ["poll_many"]
+__all__ = ["poll_many", "cull_due"]
+
+
+def cull_due(sessions: Sequence[Session], now: float) -> list:
+    """The selections due at ``now``, framed (each session's cameras for its interval), culled and projected
+    together — one compiled pass over every camera of every session of a scene view; per session what to
+    hand its ``poll`` (None: nothing due, or it culls alone)."""
+    return cull_many([s.selection_request(now) for s in sessions])
 
 
 def poll_many(sessions: Sequence[Session], now: float) -> list[list[BaseModel]]:
-    """Poll every session at ``now``; each one's messages to send, in the order given."""
-    return [s.poll(now) for s in sessions]
+    """Poll every session at ``now``; each one's messages to send, in the order given. The shared pass first
+    (``cull_due``), then each session prices its visible options, solves and builds its delta as alone."""
+    return [s.poll(now, c) for s, c in zip(sessions, cull_due(sessions, now))]

@@ -105,9 +105,10 @@ class Pipeline:
 
     def select(self, seq: int, now: float, hello, view, margin: float, t0: float, start: float, switch: float,
                reset: bool, cost: FrameCostModel, mirror: CacheMirror, delivery: Delivery,
-               stopwatch: Callable[[], float] | None) -> tuple[Delta, int, float]:
+               stopwatch: Callable[[], float] | None, culled=None) -> tuple[Delta, int, float]:
         """Delta ``seq`` for the cameras ``view`` (widened by ``margin`` degrees) over the interval from ``t0``,
-        its schedule running from ``start`` to ``switch``; returns (delta, payload bytes, compute seconds)."""
+        its schedule running from ``start`` to ``switch``; returns (delta, payload bytes, compute seconds).
+        ``culled``: the culling and projection a batch of sessions did for it (``selection.cull_many``)."""
         config, table = self.config, self.table
         tau = config.tau
         # The fitted model's fixed per-frame cost (clear, finish) is spent whatever is drawn. And the frame at
@@ -125,7 +126,7 @@ class Pipeline:
         limit = NO_LIMIT if stopwatch is None else TimeLimit(stopwatch, began + config.select_limit)
         choice = select(self.scene, view, cost, budget, hello.solver, margin,
                         memory=self.memory, t=t0, limit=limit, factors=config.factors,
-                        algorithms=self.algorithms, pixel_scale=self.pixel_scale)
+                        algorithms=self.algorithms, pixel_scale=self.pixel_scale, culled=culled)
         self.last_stats = dict(choice.stats)
         self.pixels_predicted[seq] = choice.pixels
         if len(self.pixels_predicted) > 64:

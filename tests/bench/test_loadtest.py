@@ -171,7 +171,7 @@ def test_short_real_run(demo_store):
               s.sessions_per_core, s.server_cpu_per_session_s, s.frame_p95_ms):
         assert v is not None and math.isfinite(v) and v > 0
     assert s.selection_p50_ms <= s.selection_p99_ms
-    assert s.selections_measured > 0
+    assert s.selections_measured > 0 and s.polls_per_tick is not None and s.polls_per_tick >= 1.0
     assert s.selections_due_share is not None and s.selections_due_share > 0
     assert s.server_pid is not None and s.scene
     r = s.reference

@@ -3,6 +3,7 @@ fifty others gets the same frames, byte for byte."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from bench.loadtest.scripted import run_scripted
@@ -41,3 +42,36 @@ def test_a_session_gets_the_same_deltas_alone_and_among_fifty_others(city):
     assert crowd.frames[0] == frames
     # Sessions of the crowd were due together (their selections then share a pass), not one by one.
     assert max(batched) >= 10
+
+
+def test_a_batch_culls_and_projects_each_session_as_alone(city):
+    """The shared pass gives every session the rows and projections its own culling and projection give."""
+    from server.select import options
+    from server.select.selection import _cameras, cull_many
+
+    config = SessionConfig()
+    sessions = {}
+
+    def make(i):
+        sessions[i] = Session(city, f"s{i:03d}", config)
+        return sessions[i]
+
+    requests = []
+
+    def poll(due, now):
+        reqs = [s.selection_request(now) for s in due]
+        requests.extend(r for r in reqs if r is not None)
+        return poll_many(due, now)
+
+    run_scripted(city, 12, 3.0, make_session=make, poll=poll, tick=0.05, stagger=0.1)
+    assert len(requests) >= 24
+    culled = cull_many(requests)
+    for (scene, view, solver, margin, memory, t), c in zip(requests, culled):
+        cams = _cameras(view, margin, t)
+        rows = np.nonzero(options.cull(scene.flat, cams))[0]
+        before, dts = options._before(memory, cams)
+        size, offset, speed = options.project(scene.flat, rows, cams, before, dts)
+        assert np.array_equal(c.rows, rows)
+        assert np.array_equal(c.projected[0], size) and np.array_equal(c.projected[1], offset)
+        assert [None if x is None else x.tolist() for x in c.projected[2]] == [
+            None if x is None else x.tolist() for x in speed]
