@@ -13,9 +13,11 @@ Pure: no clock, no I/O.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-__all__ = ["fold_frames"]
+__all__ = ["fold_frames", "queue_of"]
 
 
 def _deque(rows, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
@@ -93,3 +95,21 @@ def fold_frames(model, times: np.ndarray, z: np.ndarray, only_least: np.ndarray,
     model.chosen, model._pending = MODELS[mi[0]], MODELS[mi[1]]
     model._count, model.frames = int(mi[2]), int(mi[3])
     model.least, model._faces, model._verts = float(mf[0]), float(mf[1]), float(mf[2])
+
+
+def queue_of(rows, width: int, most: int) -> list[tuple[float, np.ndarray, bool]]:
+    """Frames not yet folded, as a snapshot holds them ([time, z row, drew nothing]); ValueError if malformed."""
+    if not isinstance(rows, list) or len(rows) > most:
+        raise ValueError(f"cost.queue: expected at most {most} frames")
+    out = []
+    for row in rows:
+        try:
+            t, z, empty = row
+            z = np.array(z, np.float64)
+        except (TypeError, ValueError):
+            raise ValueError("cost.queue: a frame is [time, z, empty]") from None
+        ok = isinstance(t, float) and math.isfinite(t) and t >= 1e-9 and isinstance(empty, bool)
+        if not ok or z.shape != (width,) or not np.isfinite(z).all() or (z < 0).any():
+            raise ValueError("cost.queue: a frame's time or terms are out of range")
+        out.append((t, z, empty))
+    return out

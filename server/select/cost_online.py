@@ -31,6 +31,7 @@ import numpy as np
 
 from . import kernels
 from .cost import ALGORITHM_SCALE
+from .cost_fold import fold_frames, queue_of
 from .rls import RESCALE_SHARE, RobustRLS
 from .snapshot import dump_fields, load_fields
 
@@ -332,8 +333,6 @@ class OnlineCostModel:
         queue, self._queue = self._queue, []
         ready = kernels.compiled() if self.batch else None
         if ready is not None:
-            from .cost_fold import fold_frames
-
             fold_frames(self, np.array([q[0] for q in queue]), np.stack([q[1] for q in queue]),
                         np.array([q[2] for q in queue], np.uint8), ready.fold.fold, MODELS, LEAST_SLACK, LEAST_RISE)
             return
@@ -460,10 +459,14 @@ class OnlineCostModel:
              "_count", "_faces", "_verts", "_lam", "least")
 
     def to_state(self) -> dict:
-        """Every coefficient, covariance and history, as plain data (``from_state`` reads it back)."""
-        self.flush()
+        """Every coefficient, covariance and history, as plain data (``from_state`` reads it back); frames checked
+        but not yet folded go as they are (a snapshot does not fold them: a session saves more often than it
+        selects)."""
         rungs = {name: rung.to_state() for name, rung in self.rungs.items()}
-        return {"kind": "online", **dump_fields(self, self.STATE), "rungs": rungs}
+        out = {"kind": "online", **dump_fields(self, self.STATE), "rungs": rungs}
+        if self._queue:
+            out["queue"] = [[t, z.tolist(), empty] for t, z, empty in self._queue]
+        return out
 
     def from_state(self, state) -> None:
         """Take in ``to_state``'s data; ValueError (model unchanged) if it is of another kind or does not fit."""
@@ -477,12 +480,14 @@ class OnlineCostModel:
         for name in (state.get("chosen"), state.get("_pending")):
             if name not in MODELS:
                 raise ValueError(f"cost: unknown model {name!r}")
+        queue = queue_of(state.get("queue", []), 3 * self.algorithms + 3, BATCH_MAX)
         trial = copy.deepcopy(self)  # a bad rung leaves the model untouched
+        trial._queue = []
         load_fields(trial, state, self.STATE, "cost")
         for name, rung in trial.rungs.items():
             rung.from_state(rungs[name], f"cost.{name}")
+        trial._queue = queue
         self.__dict__.update(trial.__dict__)
-        self._queue = []
 
     # ------------------------------------------------------------------ using it
 

@@ -122,3 +122,26 @@ def test_fsum_is_correctly_rounded():
         a[rng.random(a.size) < 0.2] *= 1e12
         assert fold_kernel._fsum(a, 0, a.size) == math.fsum(a)
     assert fold_kernel._fsum(np.array([1e100, 1.0, -1e100, 1e-100]), 0, 4) == math.fsum([1e100, 1.0, -1e100, 1e-100])
+
+
+def test_a_snapshot_keeps_the_frames_not_yet_folded():
+    """A session saves more often than it selects: its snapshot holds the frames still queued, unfolded, and the
+    restored model folds them as the original does."""
+    frames = _frames(3, 40, "steady")
+    a = OnlineCostModel(batch=True)
+    for frame in frames[:30]:
+        a.observe(*frame)
+    a.flush()
+    for frame in frames[30:]:
+        a.observe(*frame)
+    state = a.to_state()
+    assert a._queue and len(state["queue"]) == len(a._queue)  # nothing folded by the snapshot
+    b = OnlineCostModel(batch=True)
+    b.from_state(state)
+    a.flush(), b.flush()
+    assert b.frames == a.frames > 30 and b.to_state() == a.to_state()
+    with pytest.raises(ValueError, match="queue"):
+        OnlineCostModel(batch=True).from_state({**state, "queue": [[0.01, [1.0, 2.0], False]]})
+    c = OnlineCostModel(batch=True)
+    c.from_state({k: v for k, v in state.items() if k != "queue"})  # a snapshot from before the queue
+    assert c._queue == []
