@@ -227,6 +227,11 @@ class MorphScheduler:
         """Per key, the widest [lo, hi] level range over two (key, lo, hi) tables."""
         if b is None:
             return a
+        ready = kernels.compiled()
+        if ready is not None and _sorted_unique(a[0]) and _sorted_unique(b[0]):  # the usual case: one merge
+            return ready.delta.union_ranges(np.asarray(a[0], np.int64), np.asarray(a[1], np.float64),
+                                            np.asarray(a[2], np.float64), np.asarray(b[0], np.int64),
+                                            np.asarray(b[1], np.float64), np.asarray(b[2], np.float64))
         key = np.concatenate([a[0], b[0]])
         lo = np.concatenate([a[1], b[1]])
         hi = np.concatenate([a[2], b[2]])
@@ -239,3 +244,7 @@ class MorphScheduler:
         first = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
         return (key[first].astype(np.int64), np.minimum.reduceat(lo[order], first),
                 np.maximum.reduceat(hi[order], first))
+
+
+def _sorted_unique(key: np.ndarray) -> bool:
+    return bool(key.size < 2 or (np.diff(key) > 0).all())

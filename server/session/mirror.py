@@ -85,6 +85,8 @@ class CacheMirror:
         self.checks = 0  # acks whose held/held_bytes/digest were compared with the mirror
         self.mismatch = 0  # ... and did not match (each triggers a resync)
         self.resyncs = 0  # deltas that dropped everything and restarted the mirror empty
+        self._planned = 0  # plans so far (what ``to_state``'s packed arrays were packed after)
+        self._packed: tuple | None = None
 
     # ------------------------------------------------------------------ the client's word
 
@@ -93,6 +95,7 @@ class CacheMirror:
         resident = np.zeros(self.resident.size, bool)
         resident[held] = True
         self.resident, self.sent, self.resync = resident, resident.copy(), False
+        self._planned += 1
         self.models_sent = bool(self.table.rep_trees[held].any()) or self.models_sent
         self.recount()
 
@@ -123,6 +126,7 @@ class CacheMirror:
         """
         rep_bytes, rep_level = self.table.rep_bytes, self.table.rep_level
         selected, needed = np.asarray(selected, np.int64), np.asarray(needed, np.int64)
+        self._planned += 1
         ready = kernels.compiled()
         if ready is not None:
             return self._plan_compiled(ready.delta.plan, selected, needed, seq, ranges)
@@ -255,12 +259,21 @@ class CacheMirror:
     # ------------------------------------------------------------------ snapshot
 
     def to_state(self) -> dict:
-        """The mirror as plain data: bitsets, the last use of each held rep, totals and flags."""
-        resident = self.resident
+        """The mirror as plain data: bitsets, the last use of each held rep, totals and flags.
+
+        A session saves far more often than its mirror changes (acks, every quarter second): the packed arrays
+        are kept until it does. Every change of the held set moves the totals' digest; the sent set and the
+        last uses move only with a delta's plan."""
+        key = (tuple(self.held), self._planned)
+        if self._packed is None or self._packed[0] != key:
+            resident = self.resident
+            self._packed = (key, np.packbits(resident).tobytes(), np.packbits(self.sent).tobytes(),
+                            zlib.compress(self.last_used[resident].astype("<i4").tobytes(), 1))  # runs of equal seqs
+        _, resident_bits, sent_bits, used = self._packed
         return {
-            "resident": np.packbits(resident).tobytes(),
-            "sent": np.packbits(self.sent).tobytes(),
-            "used": zlib.compress(self.last_used[resident].astype("<i4").tobytes(), 1),  # runs of equal seqs
+            "resident": resident_bits,
+            "sent": sent_bits,
+            "used": used,
             "held": [int(x) for x in self.held],
             "models_sent": bool(self.models_sent),
             "resync": bool(self.resync),

@@ -18,7 +18,7 @@ import numpy as np
 
 from .jit import jit
 
-__all__ = ["mark", "plan", "compile_all"]
+__all__ = ["mark", "plan", "union_ranges", "compile_all"]
 
 
 @jit()
@@ -185,6 +185,30 @@ def plan(selected, key, lo, hi, extra, rep_bytes, rep_level, rep_mix, budget, re
     return new[:n_new].copy(), drop, d_count, d_bytes, d_digest, evicted, over
 
 
+@jit()
+def union_ranges(k1, lo1, hi1, k2, lo2, hi2):
+    """``MorphScheduler._union`` of two (key, lo, hi) tables, each sorted by key without repeats: per key the
+    widest range, by one merge."""
+    n1, n2 = k1.shape[0], k2.shape[0]
+    key = np.empty(n1 + n2, np.int64)
+    lo = np.empty(n1 + n2)
+    hi = np.empty(n1 + n2)
+    i = j = t = 0
+    while i < n1 or j < n2:
+        if j >= n2 or (i < n1 and k1[i] < k2[j]):
+            key[t], lo[t], hi[t] = k1[i], lo1[i], hi1[i]
+            i += 1
+        elif i >= n1 or k2[j] < k1[i]:
+            key[t], lo[t], hi[t] = k2[j], lo2[j], hi2[j]
+            j += 1
+        else:
+            key[t], lo[t], hi[t] = k1[i], min(lo1[i], lo2[j]), max(hi1[i], hi2[j])
+            i += 1
+            j += 1
+        t += 1
+    return key[:t].copy(), lo[:t].copy(), hi[:t].copy()
+
+
 def _frozen(a):
     a.flags.writeable = False  # as the scene's shared tables are (``SceneTable``): their own specialisation
     return a
@@ -198,3 +222,5 @@ def compile_all() -> None:
     plan(np.array([1], np.int64), np.array([0], np.int64), np.array([0.0]), np.array([1.0]), np.zeros(0, np.int64),
          _frozen(np.ones(m, np.int64)), _frozen(np.zeros(m, np.int64)), _frozen(np.arange(m, dtype=np.uint64)), 10,
          np.zeros(m, np.bool_), np.zeros(m, np.bool_), np.full(m, -1, np.int64), 1, False, 0)
+    k, f = np.array([1, 3], np.int64), np.array([0.0, 1.0])
+    union_ranges(k, f, f, k, f, f)

@@ -97,3 +97,22 @@ def test_mirror_plan_compiled_equals_the_reference(seed, objects, budget, deltas
             got._records[seq].held, got._records[seq].bytes, got._records[seq].digest)
     ref.recount()
     assert ref.held == got.held  # the incremental totals are the totals
+
+
+@settings(max_examples=100, deadline=None)
+@given(seed=st.integers(0, 2**31), n1=st.integers(0, 30), n2=st.integers(0, 30))
+def test_range_union_compiled_equals_the_reference(seed, n1, n2):
+    from server.select.morph import MorphScheduler
+
+    rng = np.random.default_rng(seed)
+
+    def table(n):
+        key = np.unique(rng.integers(0, 40, n)).astype(np.int64)
+        lo = np.floor(rng.random(key.size) * 3)
+        return key, lo, lo + np.floor(rng.random(key.size) * 2)
+
+    a, b = table(n1), table(n2)
+    ref = _with(False, lambda: MorphScheduler._union(a, b))
+    got = _with(True, lambda: MorphScheduler._union(a, b))
+    for x, y in zip(ref, got):
+        assert np.array_equal(x, y) and x.dtype == y.dtype
