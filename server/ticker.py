@@ -20,7 +20,7 @@ import threading
 import time
 from typing import Callable
 
-from .fair import FairPool
+from .fair import FairPool, settle
 from .session import Session
 from .session.batch import cull_due
 
@@ -86,15 +86,7 @@ class Ticker:
                 result, error = None, exc
             self.fair.charge(session.id, time.thread_time() - began + share)
             try:
-                loop.call_soon_threadsafe(_settle, future, result, error)
+                loop.call_soon_threadsafe(settle, future, result, error)
             except RuntimeError:  # the loop is closed: nobody waits for this any more
                 pass
 
-
-def _settle(future: asyncio.Future, result, error: BaseException | None) -> None:
-    if future.done():
-        return
-    if error is not None:
-        future.set_exception(error)
-    else:
-        future.set_result(result)

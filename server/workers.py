@@ -87,15 +87,8 @@ def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8765, config: 
     # The port first: a port in use is the user's to fix, and they should not wait for the stores to learn it.
     held = reserve_port(host, port)
     bound = held.getsockname()[1]
-    try:
-        for store in load_scenes(paths).values():  # each worker opens them again; a bad one is said once, here
-            store.close()
-    except ValueError as exc:
-        held.close()
-        raise ServeError(str(exc)) from None
-    except BaseException:
-        held.close()
-        raise
+    for store in _scenes(paths, held).values():  # each worker opens them again; a bad one is said once, here
+        store.close()
     run_dir = tempfile.mkdtemp(prefix="walkstream-replica-")
     if state_url in (None, "", "memory", "memory://"):
         state_url = f"sqlite:///{run_dir}/state.db"
@@ -113,17 +106,22 @@ def _single(paths, host, port, config, log_level, announce, limits, state, admin
     """One process: the listening socket, the stores and the kernels, then uvicorn."""
     sock = bind_listener(host, port, limits.send_buffer)
     bound = sock.getsockname()[1]
+    scenes = _scenes(paths, sock)
+    app = _app(scenes, config, state, limits, admin_token, replica or f"{socket.gethostname()}:{bound}", None)
+    announce(f"walkstream: serving {', '.join(sorted(scenes))} on http://{host}:{bound} (websocket /ws)")
+    _uvicorn(app, [sock], limits, log_level).run(sockets=[sock])
+
+
+def _scenes(paths, sock: socket.socket) -> dict:
+    """The scene stores opened; on failure ``sock`` closed and a ``ServeError`` for a store's own fault."""
     try:
-        scenes = load_scenes(paths)
+        return load_scenes(paths)
     except ValueError as exc:
         sock.close()
         raise ServeError(str(exc)) from None
     except BaseException:
         sock.close()
         raise
-    app = _app(scenes, config, state, limits, admin_token, replica or f"{socket.gethostname()}:{bound}", None)
-    announce(f"walkstream: serving {', '.join(sorted(scenes))} on http://{host}:{bound} (websocket /ws)")
-    _uvicorn(app, [sock], limits, log_level).run(sockets=[sock])
 
 
 def _app(scenes, config, state, limits, admin_token, replica, peers):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import threading
 import time
 
 import httpx
@@ -15,10 +14,11 @@ from websockets.sync.client import connect
 
 from bench.demo import ServerProcess
 from bench.loadtest.metrics import parse_metrics
-from client.app import run_client
 from proto import PROTOCOL_VERSION
 from proto.codec import decode_server, encode
 from proto.messages import Hello, Welcome
+
+from .killed import ClientUnderKill
 
 VIEWPORT = (320, 180)
 
@@ -65,29 +65,15 @@ def test_workers_share_the_port_and_answer_for_each_other(replica):
 
 
 def test_a_killed_worker_hands_its_client_to_another_with_nothing_resent(replica):
-    mid, moved = threading.Event(), threading.Event()
-    state: dict = {"kill_seq": None}
-
-    def on_frame(rec) -> None:
-        if rec.seq >= 3:
-            mid.set()
-        if state["kill_seq"] is not None and rec.seq > state["kill_seq"] + 1:
-            moved.set()
-
-    result: dict = {}
-    client = threading.Thread(target=lambda: result.update(run=run_client(
-        replica.url, "demo", duration=6.0, viewport=VIEWPORT, target_frame_time=0.05, on_frame=on_frame,
-        reconnect_timeout=10.0)))
-    client.start()
-    assert mid.wait(60), "the client never drew its third selection"
+    client = ClientUnderKill(replica.url, 6.0, VIEWPORT)
+    assert client.mid.wait(60), "the client never drew its third selection"
     (mine,) = _sessions(replica)
     holder = mine["worker"]
-    state["kill_seq"] = mine["selections"]
+    client.kill_seq = mine["selections"]
     os.kill(holder, signal.SIGKILL)
-    assert moved.wait(20), "no new selection was drawn after the kill"
+    assert client.moved.wait(20), "no new selection was drawn after the kill"
     (now,) = _sessions(replica)
-    client.join(60)
-    run = result["run"]
+    run = client.join(60)
     assert now["session"] == mine["session"] and now["worker"] != holder
     assert run.errors == [] and len(run.reconnects) == 1, (run.errors, run.reconnects)
     rc = run.reconnects[0]

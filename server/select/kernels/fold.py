@@ -159,14 +159,21 @@ def _full(j, r, phi, scale, seen, alg, th, c):
 
 
 @jit()
-def _frame(c, z, r):
-    """Frame seconds for one z-layout frame: c0 + max(C1·F + C2·V, C3·P) + C0·D + c_splat·S."""
+def _sides(c, z, r):
+    """The geometry side C1·F + C2·V and the fill side C3·P of a z-layout frame."""
     g = 0.0
     for i in range(1, 1 + 2 * r):
         g += c[i] * z[i]
     f = 0.0
     for i in range(1 + 2 * r, 1 + 3 * r):
         f += c[i] * z[i]
+    return g, f
+
+
+@jit()
+def _frame(c, z, r):
+    """Frame seconds for one z-layout frame: c0 + max(C1·F + C2·V, C3·P) + C0·D + c_splat·S."""
+    g, f = _sides(c, z, r)
     return c[0] + max(g, f) + c[3 * r + 1] * z[3 * r + 1] + c[3 * r + 2] * z[3 * r + 2]
 
 
@@ -410,12 +417,7 @@ def _rung(j, r, t, z, least, light, phi, cov, scale, lower, upper, seen, rs, rp,
     if j == 2:
         c = np.empty(big)
         _full(j, r, phi, scale, seen, alg, th, c)
-        g = 0.0
-        for i in range(1, 1 + 2 * r):
-            g += c[i] * z[i]
-        f = 0.0
-        for i in range(1 + 2 * r, 1 + 3 * r):
-            f += c[i] * z[i]
+        g, f = _sides(c, z, r)
         is_fill = f > g
         side = 7 if is_fill else 6
         rs[j, side] += 1
