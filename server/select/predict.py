@@ -90,8 +90,13 @@ class Pose:
     up: np.ndarray
 
 
+def _norm(v: np.ndarray) -> float:
+    """``np.linalg.norm`` of a float64 vector — the same number (it is √(v·v)) without its general machinery."""
+    return math.sqrt(float(v.dot(v)))
+
+
 def _unit(v: np.ndarray) -> tuple[np.ndarray, float]:
-    n = float(np.linalg.norm(v))
+    n = _norm(v)
     return (v / n if n > _EPS else v), n
 
 
@@ -170,7 +175,7 @@ def _tangent(v0: np.ndarray, rate: np.ndarray, limit: float) -> tuple[np.ndarray
     if n2 <= 1e-18:
         return np.zeros(3), 0.0
     rate = rate - np.dot(rate, v0) / n2 * v0
-    angular = float(np.linalg.norm(rate)) / math.sqrt(n2)
+    angular = _norm(rate) / math.sqrt(n2)
     if angular > limit:
         rate = rate * (limit / angular)
     return rate, angular
@@ -325,7 +330,7 @@ class Predictor:
 
     def _teleport(self, dt: float, x0: np.ndarray, x1: np.ndarray) -> bool:
         """Whether going from x0 to x1 in dt seconds is faster than any navigation: a jump, not a motion."""
-        jump = float(np.linalg.norm(x1[:3] - x0[:3]))
+        jump = _norm(x1[:3] - x0[:3])
         if self.limits.speed is not None:
             far = jump > 3.0 * self.limits.speed * dt + 5.0
         else:
@@ -361,7 +366,7 @@ class Predictor:
     def _seen(self, s: np.ndarray, b: np.ndarray) -> None:
         """The fastest motion seen (θ, ω without limits), from fits over at least a quarter of the window."""
         if len(s) >= 3 and -s[0] >= 0.25 * self.window:
-            self._speed_seen = max(self._speed_seen, float(np.linalg.norm(b[:3])))
+            self._speed_seen = max(self._speed_seen, _norm(b[:3]))
             self._turn_seen = max(self._turn_seen, _tangent(self._a[3:6], b[3:6], math.inf)[1])
 
     # ------------------------------------------------------------------ output
@@ -382,7 +387,7 @@ class Predictor:
         a, b = self._a, self._b
         theta, omega = self.theta, self.omega
         velocity = b[:3]
-        speed = float(np.linalg.norm(velocity))
+        speed = _norm(velocity)
         if speed > theta:
             velocity = velocity * (theta / speed)
         f_rate, _ = _tangent(a[3:6], b[3:6], omega)
@@ -396,7 +401,7 @@ class Predictor:
             if n <= 1e-9:
                 forward = self._x[-1, 3:6].copy()
             up = a[6:9] + u_rate * h
-            if np.linalg.norm(up - np.dot(up, forward) * forward) <= 1e-9:
+            if _norm(up - np.dot(up, forward) * forward) <= 1e-9:
                 up = self._x[-1, 6:9]
             out.append(Pose(eye=eye, forward=forward, up=_orthogonal_up(forward, up)))
         return out
