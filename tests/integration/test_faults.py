@@ -348,6 +348,19 @@ def test_the_frame_budget_holds_over_a_slow_lossy_network(cluster):
         f"{summary.max_ms:.1f} ms; load average {load:.1f} on {os.cpu_count()} cores)")
 
 
+def test_the_load_test_drives_the_cluster_and_sums_its_replicas(cluster):
+    """``walkstream loadtest --url`` through nginx, ``--metrics`` naming each replica: the sessions of both
+    replicas are counted, and so is the CPU of both (each replica's walkstream_cpu_seconds)."""
+    from bench.loadtest.run import run_loadtest
+
+    url = cluster.http.replace("http://", "ws://") + "/ws"
+    s = run_loadtest(url=url, metrics=[r.http for r in cluster.replicas], scene="demo", clients=6, duration=5.0,
+                     ramp=1.0, reference=0, admin_headers={"Authorization": f"Bearer {cluster.admin_token}"})
+    assert s.sessions_opened == 6 and s.errors == {} and s.server_errors == {}
+    assert s.mirror_checks and s.mirror_mismatch == 0  # the sessions of both replicas, from both /sessions
+    assert s.server_cpu_s is not None and s.server_cpu_s > 0 and s.selections_due_share > 0.5
+
+
 def test_a_killed_replica_hands_its_client_to_the_other_within_2s(cluster):
     """(a) SIGKILL the replica serving a client mid-session: it resumes on the other, nothing re-sent.
 
