@@ -325,12 +325,21 @@ def loadtest(
     admin_token: Optional[str] = typer.Option(None, envvar="WALKSTREAM_ADMIN_TOKEN", show_envvar=True,
                                               help="the --url server's admin token, to read its client-cache "
                                               "mirror checks from /sessions"),
+    workers: Optional[list[int]] = typer.Option(None, "--workers", help="worker processes of the started server; "
+                                                "repeat (--workers 1 --workers 2) for a run of each and the "
+                                                "scaling ratio (default: 1)"),
+    metrics: Optional[list[str]] = typer.Option(None, "--metrics", help="with --url: a server (http://host:port) "
+                                                "whose /metrics and /sessions count, repeated for each replica "
+                                                "behind the load balancer (default: the --url host)"),
+    coherent: bool = typer.Option(True, "--coherent/--no-coherent", help="time the incremental solver's coherent "
+                                  "step at 100k objects too (a goal of the same issue)"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON object on stdout"),
 ) -> None:
-    """Simulated clients (no GL) against a server: sessions, selections per second, p50/p99 selection latency,
-    bytes per second, server CPU per session and sessions per core, errors; a live table on stderr."""
-    from bench.loadtest.run import LoadtestError, run_loadtest
-    from bench.loadtest.summary import format_summary
+    """Simulated clients (no GL) against a server: sessions, selections per second and the share of those due,
+    p50/p99 selection latency, bytes per second, the server's CPU per session-second (all its processes) and
+    sessions per core, the generator's own CPU, errors, and the goals; a live table on stderr."""
+    from bench.loadtest.goals import format_goals, run_goals
+    from bench.loadtest.run import LoadtestError
 
     algs = [a.strip() for a in algorithms.split(",") if a.strip()]
     if stores and url:
@@ -339,22 +348,28 @@ def loadtest(
         if not path.exists():
             raise typer.BadParameter(f"no such store: {path}", param_hint="--store")
     console = stderr_console()
+    if url and workers:
+        raise typer.BadParameter("--workers starts a server of that many processes; a --url server is as it is",
+                                 param_hint="--workers")
+    if metrics and not url:
+        raise typer.BadParameter("--metrics names the servers behind a --url", param_hint="--metrics")
     try:
-        summary = run_loadtest(
+        result, runs = run_goals(
+            workers or [1], coherent=coherent,
             url=url, stores=stores or None, scene=scene, clients=clients, duration=duration, tau=tau, rate=rate,
             target_ms=target_ms, algorithms=algs, ramp=ramp, seed=seed, reference=reference,
             admin_headers={"Authorization": f"Bearer {admin_token}"} if admin_token else None,
-            live=True, log=lambda s: console.print(s, highlight=False),
+            live=True, log=lambda s: console.print(s, highlight=False), metrics=metrics,
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
     except LoadtestError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
-    for line in format_summary(summary):
+    for line in format_goals(result, runs):
         typer.echo(line, err=as_json)
     if as_json:
-        print(json.dumps(summary.as_dict()))
+        print(json.dumps(result))
 
 
 EVAL_METHODS = ",".join(METHODS)

@@ -45,8 +45,10 @@ class ServerProcess:
         replica: str | None = None,
         port: int = 0,
         env: dict | None = None,
+        workers: int = 1,
     ):
-        cmd = [sys.executable, "-m", "walkstream", "serve", *map(str, stores), "--host", host, "--port", str(port)]
+        cmd = [sys.executable, "-m", "walkstream", "serve", *map(str, stores), "--host", host, "--port", str(port),
+               "--workers", str(workers)]
         if redis:
             cmd += ["--redis", redis]
         if replica:

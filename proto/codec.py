@@ -9,7 +9,7 @@ naming the message type and the field.
 from __future__ import annotations
 
 import threading
-from typing import Mapping
+from typing import Callable, Mapping
 
 import msgpack
 import zstandard
@@ -51,17 +51,58 @@ def _zstd() -> tuple[zstandard.ZstdCompressor, zstandard.ZstdDecompressor]:
     return pair
 
 
-def encode(message: BaseModel, compress: bool = True) -> bytes:
+#: Fields whose items may come packed already (``encode``'s ``packed``): a delta's adds and tree models.
+_SHARED_ITEMS = ("add", "models")
+
+
+def encode(message: BaseModel, compress: bool = True,
+           packed: Callable[[BaseModel], bytes | None] | None = None) -> bytes:
     """A message as one msgpack map (binary websocket frame); a large server message zstd-compressed.
 
     Client messages are never compressed: the server accepts only plain msgpack, so its
-    decoder has no decompression to bound."""
-    frame = msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+    decoder has no decompression to bound.
+
+    ``packed(item)``: the msgpack bytes of an item of a list field (a delta's adds and tree models), when
+    the caller has them already — many sessions are sent the same geometry, which is then packed once.
+    msgpack is context-free, so the frame is byte for byte the one packed from scratch.
+    """
+    if packed is None or not any(getattr(message, f, None) for f in _SHARED_ITEMS):
+        frame = msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+    else:
+        frame = _splice(message, packed)
     if compress and len(frame) > COMPRESS_ABOVE and message.type in SERVER_TYPES:
         packed = _zstd()[0].compress(frame)
         if len(packed) < 0.9 * len(frame):
             return packed
     return frame
+
+
+def _splice(message: BaseModel, packed: Callable[[BaseModel], bytes | None]) -> bytes:
+    """``packb(message.model_dump())`` with the items of ``_SHARED_ITEMS`` taken from ``packed`` where it has them."""
+    pack = msgpack.Packer(use_bin_type=True).pack
+    fields = type(message).model_fields
+    shared = [f for f in _SHARED_ITEMS if f in fields]
+    rest = message.model_dump(mode="python", exclude=set(shared))
+    parts = [_map_header(len(fields))]
+    for name in fields:
+        parts.append(pack(name))
+        if name in shared:
+            items = getattr(message, name)
+            parts.append(_array_header(len(items)))
+            for item in items:
+                wire = packed(item)
+                parts.append(wire if wire is not None else pack(item.model_dump(mode="python")))
+        else:
+            parts.append(pack(rest[name]))
+    return b"".join(parts)
+
+
+def _map_header(n: int) -> bytes:
+    return bytes([0x80 | n]) if n < 16 else (b"\xde" + n.to_bytes(2, "big") if n < 1 << 16 else b"\xdf" + n.to_bytes(4, "big"))
+
+
+def _array_header(n: int) -> bytes:
+    return bytes([0x90 | n]) if n < 16 else (b"\xdc" + n.to_bytes(2, "big") if n < 1 << 16 else b"\xdd" + n.to_bytes(4, "big"))
 
 
 #: Longest field name an error sentence repeats: a peer's unknown key may be 64 KiB long.

@@ -26,7 +26,6 @@ import time
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
-from pathlib import Path
 from typing import Callable, Mapping
 
 from fastapi import Depends, FastAPI, HTTPException, Request, Response, WebSocket
@@ -40,12 +39,16 @@ from .connection import CLOSE_POLICY, GONE, SOCKET_GONE, WAKE, Connection, error
 from .fair import FairPool
 from .limits import MEASUREMENT_SOLVERS, WS_MAX_SIZE, Admission, RateGuard, ReplicaLimits, remote_address
 from .metrics import CONTENT_TYPE_LATEST, Metrics
+from .peers import Peers
 from .scene.store import SceneStore
 from .session import Session, SessionConfig, SessionState
-from .startup import ServeError, bind_listener, check_state_url, load_scenes
-from .state import MemoryStateStore, StateStore, open_state_store
+from .session.payloads import packed
+from .session.table import SceneTable
+from .startup import ServeError, load_scenes
+from .state import MemoryStateStore, StateStore
+from .ticker import Ticker
 
-__all__ = ["create_app", "load_scenes", "serve", "ServeError", "WS_MAX_SIZE"]
+__all__ = ["create_app", "load_scenes", "ServeError", "WS_MAX_SIZE"]
 
 log = logging.getLogger("walkstream.server")
 
@@ -64,15 +67,19 @@ def create_app(
     admin_token: str | None = None,
     replica: str | None = None,
     stopwatch: Callable[[], float] = time.perf_counter,
+    peers: Peers | None = None,
 ) -> FastAPI:
     """The service for ``scenes``; ``state`` keeps session state for resumes (default: in this process's memory).
 
     ``stopwatch`` is the clock every session's selection is timed by (its deadline, the compute time it reports).
+    ``peers``: the replica's other worker processes (``server.workers``), whose sessions ``/sessions`` lists too.
     """
     config = config or SessionConfig()
     limits = limits or ReplicaLimits()
     store: StateStore = state if state is not None else MemoryStateStore()
     replica = replica or socket.gethostname()
+    for s in scenes.values():  # what every session of a scene shares, built once, before any session
+        SceneTable.of(s.index).prepare(config.importance)
     conns: dict[str, Connection] = {}
     sessions: dict[str, Session] = {}  # the same, by session (tests and /sessions look here)
     metrics = Metrics(lambda: len(conns))
@@ -80,15 +87,31 @@ def create_app(
 
     def n_sessions() -> int:  # connections that said their hello: the ones holding a session slot
         return sum(1 for c in conns.values() if c.slot or c.session.state is not SessionState.AWAIT_HELLO)
-    pool = ThreadPoolExecutor(max_workers=limits.workers, thread_name_prefix="walkstream-select")
+    pool = ThreadPoolExecutor(max_workers=limits.threads, thread_name_prefix="walkstream-select")
     # Selections, fairly: a session that spends more CPU than its neighbours waits behind them.
-    fair = FairPool(limits.workers, name="walkstream-fair")
+    fair = FairPool(limits.threads, name="walkstream-fair")
+
+    def poll_encoded(session: Session, now: float, culled) -> tuple[list[tuple[bytes, str | None]], bool, float,
+                                                                     bytes | None]:
+        """In a tick (``ticker``): run what is due, encode it, and snapshot the state if a delta went out."""
+        began = time.thread_time()
+        out = session.poll(now, culled)
+        frames = [(encode(m, packed=packed), m.code if isinstance(m, Error) else None) for m in out]
+        delta = any(isinstance(m, Delta) for m in out)
+        cpu = time.thread_time() - began
+        blob = session.snapshot() if delta else None
+        return frames, delta, cpu, blob
+
+    # Polls that fall due together run as one tick: their selections culled and projected in one pass.
+    ticker = Ticker(fair, poll_encoded, observe=metrics.tick)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        refresh = asyncio.create_task(metrics.keep_fresh())
         try:
             yield
         finally:
+            refresh.cancel()
             for conn in list(conns.values()):
                 # Not "closed" (an administrator's end of the session): a client redials and resumes elsewhere.
                 conn.request_close("busy", CLOSE_RESTART, "the server is shutting down; reconnect to resume")
@@ -112,6 +135,7 @@ def create_app(
     app.state.store = store
     app.state.pool = pool
     app.state.fair = fair
+    app.state.ticker = ticker
 
     def register(conn: Connection) -> None:
         conns[conn.session.id] = conn
@@ -139,7 +163,7 @@ def create_app(
     async def health() -> dict:
         sessions_now = n_sessions()
         return {"status": "ok", "replica": replica, "sessions": sessions_now, "connections": len(conns),
-                "pending": len(conns) - sessions_now, "max_sessions": limits.max_sessions, "scenes": sorted(scenes)}
+                "pending": len(conns) - sessions_now, "max_sessions": limits.max_sessions, "scenes": sorted(scenes), "worker": os.getpid()}
 
     @app.get("/scenes")
     async def list_scenes() -> list[dict]:
@@ -165,14 +189,26 @@ def create_app(
         return Response(metrics.render(), media_type=CONTENT_TYPE_LATEST)
 
     @app.get("/sessions", dependencies=[Depends(require_admin)], include_in_schema=False)
-    async def list_sessions() -> list[dict]:
+    async def list_sessions(request: Request, local: bool = False) -> list[dict]:
+        """This replica's sessions: this worker's, and (unless ``local``) every other worker's."""
         now = time.monotonic()
-        return [{**c.info(now), "selection_cpu_s": round(fair.total(c.session.id), 4),
-                 "selection_cpu_recent_s": round(fair.spent(c.session.id), 4)} for c in conns.values()]
+        rows = [{**c.info(now), "selection_cpu_s": round(fair.total(c.session.id), 4),
+                 "selection_cpu_recent_s": round(fair.spent(c.session.id), 4), "worker": os.getpid()}
+                for c in conns.values()]
+        if peers is not None and not local:
+            auth = {"authorization": request.headers.get("authorization", "")}
+            for status, body in await peers.ask("GET", "/sessions", auth):
+                rows += body if status == 200 and isinstance(body, list) else []
+        return rows
 
     @app.delete("/sessions/{session_id}", dependencies=[Depends(require_admin)], include_in_schema=False)
-    async def close_session(session_id: str) -> dict:
+    async def close_session(session_id: str, request: Request, local: bool = False) -> dict:
         conn = conns.get(session_id)
+        if conn is None and peers is not None and not local:  # held by another worker of this replica?
+            auth = {"authorization": request.headers.get("authorization", "")}
+            for status, body in await peers.ask("DELETE", f"/sessions/{session_id}", auth):
+                if status == 200:
+                    return body
         if conn is None:
             raise HTTPException(404, f"no session {session_id!r} on this replica")
         conn.request_close("closed", CLOSE_NORMAL)
@@ -286,16 +322,6 @@ def create_app(
         register(conn)
         guard = RateGuard(limits, now)
 
-        def poll_encoded(session: Session, now: float) -> tuple[list[tuple[bytes, str | None]], bool, float, bytes | None]:
-            """In a worker: run what is due, encode it, and snapshot the state if a delta went out."""
-            began = time.thread_time()
-            out = session.poll(now)
-            frames = [(encode(m), m.code if isinstance(m, Error) else None) for m in out]
-            delta = any(isinstance(m, Delta) for m in out)
-            cpu = time.thread_time() - began
-            blob = session.snapshot() if delta else None
-            return frames, delta, cpu, blob
-
         async def send(frames: list[tuple[bytes, str | None]]) -> None:
             for frame, code in frames:
                 conn.send_since = time.monotonic()
@@ -306,7 +332,7 @@ def create_app(
                     metrics.errors.labels(code).inc()
 
         def encoded(messages: list[BaseModel]) -> list[tuple[bytes, str | None]]:
-            return [(encode(m), m.code if isinstance(m, Error) else None) for m in messages]
+            return [(encode(m, packed=packed), m.code if isinstance(m, Error) else None) for m in messages]
 
         async def first(data, t: float) -> list[BaseModel]:
             """A frame before the session is open: a hello (resumed if it asks and may) or a refusal."""
@@ -387,7 +413,7 @@ def create_app(
                                                                      "the session is closed")
                             continue
                         if deadline is not None and now >= deadline:
-                            frames, delta, cpu, blob = await fair.run(session.id, poll_encoded, session, now)
+                            frames, delta, cpu, blob = await ticker.poll(session)
                             await send(frames)
                             if delta:
                                 metrics.selection_seconds.observe(time.monotonic() - deadline)
@@ -449,58 +475,3 @@ def create_app(
 
     return app
 
-
-def serve(
-    paths: list[Path],
-    host: str = "127.0.0.1",
-    port: int = 8765,
-    config: SessionConfig | None = None,
-    log_level: str = "warning",
-    announce=print,
-    *,
-    limits: ReplicaLimits | None = None,
-    state_url: str | None = None,
-    admin_token: str | None = None,
-    replica: str | None = None,
-) -> None:
-    """Run uvicorn on ``host:port`` (port 0: any free port, announced once listening)."""
-    import uvicorn
-
-    limits = limits or ReplicaLimits()
-    try:
-        state = open_state_store(state_url)
-    except Exception as exc:  # an unknown scheme, a malformed URL
-        raise ServeError(str(exc)) from None
-    if not isinstance(state, MemoryStateStore):
-        check_state_url(state_url)
-    # The port first: a port in use is the user's to fix, and they should not wait for the stores and kernels
-    # to learn it.
-    sock = bind_listener(host, port, limits.send_buffer)
-    bound = sock.getsockname()[1]
-    try:
-        scenes = load_scenes(paths)
-    except ValueError as exc:
-        sock.close()
-        raise ServeError(str(exc)) from None
-    except BaseException:
-        sock.close()
-        raise
-    # Selections switch from the numpy reference to the compiled kernels once those are ready; doing that
-    # mid-session could flip a tie and morph an object for nothing, so sessions start only after it (the
-    # bootstrap fills numba's cache, from which it is quick). WALKSTREAM_NUMBA=0 keeps the kernels off.
-    from .select import kernels
-
-    began = time.perf_counter()
-    compiled = kernels.warm_up(timeout=300, setting=os.environ.get("WALKSTREAM_NUMBA"))
-    log.info("selection kernels: %s after %.1f s", "numba" if compiled else "numpy", time.perf_counter() - began)
-    app = create_app(scenes, config, state=state, limits=limits, admin_token=admin_token,
-                     replica=replica or f"{socket.gethostname()}:{bound}")
-    announce(f"walkstream: serving {', '.join(sorted(scenes))} on http://{host}:{bound} (websocket /ws)")
-    server = uvicorn.Server(
-        uvicorn.Config(app, log_level=log_level, ws_max_size=limits.max_message,
-                       ws_ping_interval=limits.ping_interval, ws_ping_timeout=limits.ping_timeout,
-                       # Large frames are zstd'd by the codec already; deflate on top would only burn CPU
-                       # on every small frame of every session.
-                       ws_per_message_deflate=False)
-    )
-    server.run(sockets=[sock])

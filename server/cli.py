@@ -158,7 +158,10 @@ def serve(
     rate: float = typer.Option(200.0, help="messages per second a session may send (token bucket rate)"),
     burst: float = typer.Option(400.0, help="messages a session may send at once (token bucket size)"),
     idle_timeout: float = typer.Option(60.0, help="seconds without a client message before the session is closed"),
-    workers: Optional[int] = typer.Option(None, help="selection worker threads (default: the number of CPUs)"),
+    workers: Optional[int] = typer.Option(None, help="worker processes behind the one port (default: the number of "
+                                          "CPUs); they share session state (--redis, or a file of their own)"),
+    threads: Optional[int] = typer.Option(None, help="selection threads per worker process (default: the number "
+                                          "of CPUs)"),
     state_ttl: float = typer.Option(300.0, help="seconds a disconnected session's state is kept for a resume"),
     replica: Optional[str] = typer.Option(None, help="this replica's name in /health (default: hostname:port)"),
     send_buffer: Optional[int] = typer.Option(None, help="kernel send buffer per connection in bytes (default: "
@@ -177,8 +180,10 @@ def serve(
     docs: bool = typer.Option(False, "--docs", help="serve the interactive API docs at /docs (loads from a CDN)"),
 ) -> None:
     """Serve scene stores over websockets at /ws (plus /health, /scenes, /metrics, and /sessions for admins)."""
-    from server.app import ServeError
-    from server.app import serve as run_server
+    import os
+
+    from server.startup import ServeError
+    from server.workers import serve as run_server
     from server.limits import ReplicaLimits
     from server.scene.store import StoreError
     from server.session import SessionConfig
@@ -199,8 +204,10 @@ def serve(
                  hello_timeout=hello_timeout, max_bad_frames=max_bad_frames, max_per_address=max_per_address,
                  byte_rate=byte_rate, connect_rate=connect_rate, trusted_proxies=tuple(trusted_proxy),
                  allow_measurement_solvers=allow_measurement_solvers, docs=docs)
-    if workers is not None:
-        given["workers"] = workers
+    if threads is not None:
+        given["threads"] = threads
+    if workers is not None and workers < 1:
+        raise typer.BadParameter("must be at least 1", param_hint="--workers")
     if send_buffer is not None:
         given["send_buffer"] = send_buffer
     try:
@@ -211,6 +218,6 @@ def serve(
     try:
         run_server(stores, host, port, SessionConfig(tau=tau, c_vertex=c_vertex), log_level,
                    announce=lambda s: print(s, flush=True), limits=limits, state_url=redis or None,
-                   admin_token=admin_token or None, replica=replica)
+                   admin_token=admin_token or None, replica=replica, workers=workers or os.cpu_count() or 1)
     except (StoreError, ServeError) as exc:
         fail(str(exc))

@@ -15,7 +15,7 @@ import threading
 import time
 from typing import Any, Callable, Hashable
 
-__all__ = ["FairPool"]
+__all__ = ["FairPool", "settle"]
 
 
 class FairPool:
@@ -45,6 +45,13 @@ class FairPool:
         with self._cond:
             return self._total.get(key, 0.0)
 
+    def charge(self, key: Hashable, cpu: float) -> None:
+        """Charge ``key`` CPU seconds spent for it outside this pool's own jobs (a batch's share)."""
+        with self._cond:
+            now = self._clock()
+            self._spent[key] = (self._decayed(key, now) + cpu, now)
+            self._total[key] = self._total.get(key, 0.0) + cpu
+
     def forget(self, key: Hashable) -> None:
         with self._cond:
             self._spent.pop(key, None)
@@ -68,7 +75,7 @@ class FairPool:
             dropped, self._queue = self._queue, []
             self._cond.notify_all()
         for _, _, _, _, loop, future in dropped:
-            loop.call_soon_threadsafe(_settle, future, None, RuntimeError("the pool is shut down"))
+            loop.call_soon_threadsafe(settle, future, None, RuntimeError("the pool is shut down"))
         for t in self._threads:
             t.join(timeout=30)
 
@@ -104,12 +111,13 @@ class FairPool:
                 self._spent[key] = (self._decayed(key, now) + cpu, now)
                 self._total[key] = self._total.get(key, 0.0) + cpu
             try:
-                loop.call_soon_threadsafe(_settle, future, result, error)
+                loop.call_soon_threadsafe(settle, future, result, error)
             except RuntimeError:  # the loop is closed: nobody waits for this any more
                 pass
 
 
-def _settle(future: asyncio.Future, result: Any, error: BaseException | None) -> None:
+def settle(future: asyncio.Future, result: Any, error: BaseException | None) -> None:
+    """Hand a job's result (or exception) to the coroutine awaiting ``future`` (on its loop's thread)."""
     if future.done():
         return
     if error is not None:

@@ -46,7 +46,7 @@ class ReplicaLimits:
     idle_timeout : seconds without any client message before Error("idle") and close 1000
     max_message : bytes of the largest frame uvicorn accepts at all (close 1009 above it)
     ping_interval, ping_timeout : uvicorn's websocket keepalive pings (seconds)
-    workers : threads of the selection pool
+    threads : threads of the selection pool (per worker process)
     state_ttl : seconds a saved session state is kept for a resume
     save_interval : the least seconds between two saves of one session's state after acks
     send_buffer : kernel send buffer per connection (bytes; None: the kernel's autotuning, up to
@@ -76,7 +76,7 @@ class ReplicaLimits:
     max_message: int = WS_MAX_SIZE
     ping_interval: float = 20.0
     ping_timeout: float = 20.0
-    workers: int = field(default_factory=_cpus)
+    threads: int = field(default_factory=_cpus)
     state_ttl: float = 300.0
     save_interval: float = 0.25
     send_buffer: int | None = None
@@ -101,12 +101,12 @@ class ReplicaLimits:
             if not low < value <= high:
                 raise ValueError(f"{name} must lie in ({low:g}, {high:g}], got {value!r}")
 
-        for name in ("max_sessions", "workers", "max_message", "max_bad_frames", "max_per_address", "max_pending",
+        for name in ("max_sessions", "threads", "max_message", "max_bad_frames", "max_per_address", "max_pending",
                      "inbox_bytes"):
             if not isinstance(getattr(self, name), int) or isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be an integer, got {getattr(self, name)!r}")
         positive("max_sessions", 0, 1_000_000)
-        positive("workers", 0, 1024)
+        positive("threads", 0, 1024)
         positive("max_message", 1024, 1 << 30)
         positive("rate", 0, 1e6)
         positive("burst", 0, 1e7)

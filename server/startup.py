@@ -12,7 +12,7 @@ from pathlib import Path
 
 from .scene.store import SceneStore
 
-__all__ = ["ServeError", "load_scenes", "check_state_url", "bind_listener"]
+__all__ = ["ServeError", "load_scenes", "check_state_url", "bind_listener", "reserve_port"]
 
 
 class ServeError(RuntimeError):
@@ -50,15 +50,23 @@ def check_state_url(url: str, timeout: float = 3.0) -> None:
         client.close()
 
 
-def bind_listener(host: str, port: int, send_buffer: int | None = None) -> socket.socket:
-    """A listening TCP socket on ``host:port``; ``ServeError`` naming the address if it cannot be had."""
+def bind_listener(host: str, port: int, send_buffer: int | None = None, *, reuse_port: bool = False,
+                  listen: bool = True) -> socket.socket:
+    """A listening TCP socket on ``host:port``; ``ServeError`` naming the address if it cannot be had.
+
+    ``reuse_port``: one of several sockets on the port (SO_REUSEPORT), among which the kernel spreads new
+    connections — a replica's worker processes each listen on their own. ``listen=False`` only binds: a
+    bound socket that does not listen is given no connections, and holds the port for the workers."""
     sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if reuse_port:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
         if send_buffer is not None:  # accepted connections inherit it (and lose autotuning)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, send_buffer)
         sock.bind((host, port))
-        sock.listen(128)  # connections queue in the backlog until uvicorn accepts them
+        if listen:
+            sock.listen(1024 if reuse_port else 128)  # connections queue in the backlog until uvicorn accepts them
     except (OSError, UnicodeError) as exc:
         sock.close()
         why = "the port is in use" if getattr(exc, "errno", None) == errno.EADDRINUSE else str(exc)
@@ -67,3 +75,12 @@ def bind_listener(host: str, port: int, send_buffer: int | None = None) -> socke
         sock.close()
         raise ServeError(f"cannot listen on {host}:{port}: the port must lie in 0..65535") from None
     return sock
+
+
+def reserve_port(host: str, port: int) -> socket.socket:
+    """The port for a replica's workers: checked free (a plain bind fails where anything listens, another
+    replica's workers too), then held by a bound, non-listening SO_REUSEPORT socket the workers join."""
+    probe = bind_listener(host, port, listen=False)
+    bound = probe.getsockname()[1]
+    probe.close()
+    return bind_listener(host, bound, reuse_port=True, listen=False)

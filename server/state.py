@@ -7,10 +7,11 @@ history, clock, pipeline counters and the client-cache mirror, a few
 kilobytes) from a ``StateStore`` and the session carries on, sending nothing the
 client already holds.
 
-Two stores: ``MemoryStateStore`` (one process, the default) and
-``RedisStateStore`` (shared by replicas, ``--redis URL``). Both expire a
-snapshot ``ttl`` seconds after its last save, so an abandoned session costs
-nothing for long.
+Three stores: ``MemoryStateStore`` (one process, the default),
+``SqliteStateStore`` (a file every worker process of a replica opens: the
+embedded shared store, no server needed) and ``RedisStateStore`` (shared by
+replicas, ``--redis URL``). All expire a snapshot ``ttl`` seconds after its
+last save, so an abandoned session costs nothing for long.
 
 What goes into a snapshot is each part's own business: every part of a
 session that outlives a connection has ``to_state`` / ``from_state``
@@ -22,8 +23,11 @@ state of the one that took it over.
 
 from __future__ import annotations
 
+import asyncio
 import math
 import re
+import sqlite3
+import threading
 import time
 import urllib.parse
 from typing import Callable, Protocol, runtime_checkable
@@ -35,6 +39,7 @@ __all__ = [
     "StateStoreError",
     "MemoryStateStore",
     "RedisStateStore",
+    "SqliteStateStore",
     "open_state_store",
     "SNAPSHOT_FORMAT",
     "SNAPSHOT_VERSION",
@@ -214,14 +219,102 @@ return 1
         await self._redis.aclose()
 
 
+class SqliteStateStore(StateStore):
+    """Snapshots in one SQLite file that every worker process of a replica opens (WAL: readers never wait).
+
+    A fenced save is one ``BEGIN IMMEDIATE`` transaction: read the stored token, write only if it is ours, the
+    fence or expired — so two workers racing for a session cannot both win, as with Redis's script. Expiry is
+    on the wall clock (``clock``), the one all processes share; expired rows are swept at most once per
+    ``sweep`` seconds by each process. The calls run in threads: a save waiting on another process's
+    transaction never blocks the event loop. State is ephemeral (a lost machine loses its sessions anyway),
+    so commits are not synced to disk.
+    """
+
+    def __init__(self, path: str, clock: Callable[[], float] = time.time, sweep: float = 5.0,
+                 timeout: float = 5.0) -> None:
+        self.path = str(path)
+        self._clock = clock
+        self._sweep, self._next_sweep = float(sweep), -math.inf
+        self._lock = threading.Lock()  # one connection per store object, used by one thread at a time
+        try:
+            self._db = sqlite3.connect(self.path, timeout=timeout, check_same_thread=False, isolation_level=None)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=OFF")
+            self._db.execute("CREATE TABLE IF NOT EXISTS sessions (id TEXT PRIMARY KEY, token TEXT NOT NULL, "
+                             "blob BLOB NOT NULL, expires REAL NOT NULL)")
+        except sqlite3.Error as exc:
+            raise StateStoreError(f"cannot open the session-state file {self.path}: {exc}") from None
+
+    async def _run(self, what: str, fn, *args):
+        def call():
+            with self._lock:
+                if self._db is None:
+                    raise StateStoreError(f"the session-state file {self.path} is closed")
+                try:
+                    return fn(self._db, *args)
+                except sqlite3.Error as exc:
+                    raise StateStoreError(f"the session-state file {self.path} refused to {what}: {exc}") from None
+
+        return await asyncio.get_running_loop().run_in_executor(None, call)
+
+    def _save(self, db, session_id: str, token: str, blob: bytes, ttl: float, fence: str | None) -> bool:
+        now = self._clock()
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            row = db.execute("SELECT token, expires FROM sessions WHERE id = ?", (session_id,)).fetchone()
+            if row is not None and row[1] > now and row[0] not in (token, fence):
+                db.execute("ROLLBACK")
+                return False  # another owner took the session over
+            db.execute("INSERT OR REPLACE INTO sessions (id, token, blob, expires) VALUES (?, ?, ?, ?)",
+                       (session_id, str(token), bytes(blob), now + ttl))
+            if now >= self._next_sweep:
+                self._next_sweep = now + self._sweep
+                db.execute("DELETE FROM sessions WHERE expires <= ?", (now,))
+            db.execute("COMMIT")
+        except BaseException:
+            if db.in_transaction:
+                db.execute("ROLLBACK")
+            raise
+        return True
+
+    async def save(self, session_id: str, token: str, blob: bytes, ttl: float, fence: str | None = None) -> bool:
+        return await self._run(f"save session {session_id}", self._save, session_id, token, blob, _check_ttl(ttl),
+                               fence)
+
+    def _load(self, db, session_id: str):
+        row = db.execute("SELECT token, blob FROM sessions WHERE id = ? AND expires > ?",
+                         (session_id, self._clock())).fetchone()
+        return None if row is None else (row[0], bytes(row[1]))
+
+    async def load(self, session_id: str) -> tuple[str, bytes] | None:
+        return await self._run(f"load session {session_id}", self._load, session_id)
+
+    async def delete(self, session_id: str) -> None:
+        await self._run(f"delete session {session_id}",
+                        lambda db: db.execute("DELETE FROM sessions WHERE id = ?", (session_id,)))
+
+    async def close(self) -> None:
+        with self._lock:
+            if self._db is not None:
+                self._db.close()
+                self._db = None
+
+
 def open_state_store(url: str | None) -> StateStore:
-    """None (or "" / "memory://") → ``MemoryStateStore``; "redis://…", "rediss://…", "unix://…" → ``RedisStateStore``."""
+    """None (or "" / "memory://") → ``MemoryStateStore``; "sqlite:///path" → ``SqliteStateStore``;
+    "redis://…", "rediss://…", "unix://…" → ``RedisStateStore``."""
     if url is None or url in ("", "memory", "memory://"):
         return MemoryStateStore()
     scheme = urllib.parse.urlsplit(url).scheme
     if scheme in ("redis", "rediss", "unix"):
         return RedisStateStore(url)
-    raise ValueError(f"unknown state store {_redact(url)!r}: give a redis://host:port/db URL, or none for memory")
+    if scheme == "sqlite":
+        path = url[len("sqlite://"):]
+        if not path or path == "/":
+            raise ValueError(f"a sqlite state store names its file: sqlite:///path/to/state.db, got {url!r}")
+        return SqliteStateStore(path)
+    raise ValueError(f"unknown state store {_redact(url)!r}: give a redis://host:port/db URL, a "
+                     "sqlite:///path/state.db file, or none for memory")
 
 
 # --------------------------------------------------------------------------- snapshot codec

@@ -15,8 +15,11 @@ the server it measures (they share the machine's cores):
 - poses come from the tour in vectorised chunks, not one ``pose_at`` per frame.
 
 The server's side of the story comes from its ``/metrics`` (Prometheus text):
-the selection-latency histogram over the measured window, CPU seconds
-(``process_cpu_seconds_total``) and bytes out. A one-client reference is
+the selection-latency histogram over the measured window and bytes out; the
+server's CPU seconds are its processes' own — a started server's supervisor and
+workers read from ``/proc``, another's ``walkstream_cpu_seconds``, summed over
+the replicas ``--metrics`` names. ``goals`` runs one test per worker count and
+reports the issue's goals with the scaling ratio between them. A one-client reference is
 measured in the same run first, because a shared machine's absolute figures
 drift; the ratios against it are what to read.
 """

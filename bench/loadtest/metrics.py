@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Scrape", "parse_metrics", "histogram_quantile", "hist_delta", "quantiles_ms", "proc_cpu"]
+__all__ = ["Scrape", "parse_metrics", "merge", "histogram_quantile", "hist_delta", "quantiles_ms", "proc_cpu", "tree_cpu"]
 
 
 # --------------------------------------------------------------------------- the server's /metrics
@@ -51,6 +51,20 @@ def parse_metrics(text: str, at: float = 0.0) -> Scrape:
     for name, b in buckets.items():
         le = np.array(sorted(b), np.float64)
         out.hist[name] = (le, np.array([b[x] for x in le], np.float64))
+    return out
+
+
+def merge(scrapes: list[Scrape]) -> Scrape:
+    """Several servers' scrapes as one (replicas behind a load balancer): samples and histograms summed."""
+    out = Scrape(at=max(s.at for s in scrapes))
+    for s in scrapes:
+        for k, v in s.values.items():
+            out.values[k] = out.values.get(k, 0.0) + v
+        for k, v in s.errors.items():
+            out.errors[k] = out.errors.get(k, 0.0) + v
+        for name, (le, cum) in s.hist.items():
+            held = out.hist.get(name)
+            out.hist[name] = (le, cum.copy()) if held is None else (le, held[1] + cum)
     return out
 
 
@@ -95,10 +109,38 @@ def quantiles_ms(a: Scrape | None, b: Scrape, name: str) -> tuple[float | None, 
     return (histogram_quantile(*h, 0.5) * 1e3, histogram_quantile(*h, 0.99) * 1e3, int(h[1][-1]))
 
 
+def _stat(pid: int) -> list[str] | None:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
 def proc_cpu(pid: int) -> float | None:
     """utime + stime of a local process (s): the fallback when /metrics has no process collector."""
+    fields = _stat(pid)
     try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
+        return None if fields is None else (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (IndexError, ValueError):
         return None
+
+
+def tree_cpu(pid: int) -> float | None:
+    """CPU seconds of a local process and every process below it — a replica's supervisor and its workers —
+    including the children it has reaped (a worker that was killed and replaced)."""
+    parent: dict[int, int] = {}
+    stats: dict[int, list[str]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and (fields := _stat(int(entry.name))) is not None:
+            stats[int(entry.name)] = fields
+            parent[int(entry.name)] = int(fields[1])
+    if pid not in stats:
+        return None
+    tick = os.sysconf("SC_CLK_TCK")
+    total, todo = 0, [pid]
+    while todo:
+        p = todo.pop()
+        f = stats[p]
+        total += int(f[11]) + int(f[12]) + int(f[13]) + int(f[14])  # own, and of the children it waited for
+        todo += [c for c, up in parent.items() if up == p]
+    return total / tick

@@ -29,7 +29,9 @@ from itertools import islice
 
 import numpy as np
 
+from . import kernels
 from .cost import ALGORITHM_SCALE
+from .cost_fold import fold_frames, queue_of
 from .rls import RESCALE_SHARE, RobustRLS
 from .snapshot import dump_fields, load_fields
 
@@ -42,6 +44,8 @@ SECONDARY = 0.25
 #: A regime change: the chosen model off by more than REGIME_ERROR (relative) on each of the last REGIME_FRAMES
 #: frames, and by more than REGIME_RATIO × another model's error on each, switches to the best at once.
 REGIME_FRAMES, REGIME_ERROR, REGIME_RATIO = 2, 0.3, 3.0
+#: Frames a batch model keeps unfolded at most (a session that stops selecting still folds its reports).
+BATCH_MAX = 64
 #: Frames a side of the stages model is "young": over-predicting the whole frame, it is scaled down to it.
 YOUNG = 10
 #: No frame costs less than the fixed overhead c0, so c0 is bounded by the lightest frame measured — with a
@@ -251,7 +255,7 @@ class OnlineCostModel:
     """
 
     def __init__(self, algorithms: int = 3, c_vertex: float = 2e-7, forgetting: float = 0.97, within: float = 0.30,
-                 window: int = 60, min_frames: int = 10) -> None:
+                 window: int = 60, min_frames: int = 10, batch: bool = False) -> None:
         if algorithms < 1 or not (math.isfinite(c_vertex) and c_vertex > 0) or not within >= 0 or window < 1:
             raise ValueError("algorithms ≥ 1, c_vertex > 0, within ≥ 0 and window ≥ 1 are needed")
         self.algorithms, self.within, self.window, self.min_frames = algorithms, within, window, min_frames
@@ -277,6 +281,10 @@ class OnlineCostModel:
         #: held-out error cannot tell a model that puts nearly the whole frame in c0 (c_vert ≈ 0) from the
         #: right one, until the first larger selection costs far more than its prediction.
         self.least = math.inf
+        #: Frames are checked as they come and folded when the model is next read: a session reads it once per
+        #: selection, and folds the reports of one τ in one compiled pass (``cost_fold``), not one by one.
+        self.batch = batch
+        self._queue: list[tuple[float, np.ndarray, bool]] = []
 
     # ------------------------------------------------------------------ feeding it
 
@@ -286,8 +294,19 @@ class OnlineCostModel:
 
         Returns whether it was used: non-finite, negative or absurd figures (counts in (0, 1e-6) or
         above 1e15), times under 1 ns (≤ 0 included) and frames that drew nothing (no vertices, no
-        splats) are refused. Arrays of the wrong size raise ValueError.
+        splats) are refused. Arrays of the wrong size raise ValueError. A ``batch`` model checks the
+        frame now and folds it at the next read of the model (``flush``).
         """
+        checked = self._check(time, triangles, vertices, pixels, draws, splats)
+        if checked is None:
+            return False
+        self._queue.append(checked)
+        if not self.batch or len(self._queue) >= BATCH_MAX:
+            self.flush()
+        return not checked[2]
+
+    def _check(self, time, triangles, vertices, pixels, draws, splats):
+        """(time, z row, drew nothing) of a frame worth folding, or None; ValueError for arrays of the wrong size."""
         r = self.algorithms
         cols = []
         for name, a in (("triangles", triangles), ("vertices", vertices), ("pixels", pixels), ("draws", draws)):
@@ -298,15 +317,33 @@ class OnlineCostModel:
         try:
             time, splats = float(time), float(splats)
         except (TypeError, ValueError):
-            return False
+            return None
         z = np.concatenate([[1.0], cols[0], cols[1], cols[2], [cols[3].sum(), splats]])
         if not (math.isfinite(time) and time >= 1e-9 and np.isfinite(z).all() and (z >= 0).all()):
-            return False  # no frame takes less than a nanosecond
+            return None  # no frame takes less than a nanosecond
         if ((z > 0) & (z < 1e-6)).any() or z.max() > 1e15:
-            return False  # counts, not numerical dust (which would put a coefficient's scale at infinity)
+            return None  # counts, not numerical dust (which would put a coefficient's scale at infinity)
+        return time, z, bool(cols[1].sum() + splats <= 0)
+
+    def flush(self) -> None:
+        """Fold the frames checked but not yet folded, in order: in one compiled pass (``cost_fold``) for a
+        ``batch`` model once the kernels are ready, else one by one (the reference)."""
+        if not self._queue:
+            return
+        queue, self._queue = self._queue, []
+        ready = kernels.compiled() if self.batch else None
+        if ready is not None:
+            fold_frames(self, np.array([q[0] for q in queue]), np.stack([q[1] for q in queue]),
+                        np.array([q[2] for q in queue], np.uint8), ready.fold.fold, MODELS, LEAST_SLACK, LEAST_RISE)
+            return
+        for time, z, empty in queue:
+            self._fold(time, z, empty)
+
+    def _fold(self, time: float, z: np.ndarray, empty: bool) -> None:
+        r = self.algorithms
         self.least = min(time, self.least * (1.0 + LEAST_RISE))  # an empty frame is the overhead alone
-        if cols[1].sum() + splats <= 0:
-            return False
+        if empty:
+            return
         predicted = _frame(self.rungs[self.chosen].full(), z, r)
         if predicted > 0 and max(predicted, time) >= self.tail_min_time:
             self._ratios.append(time / predicted)  # the chosen model's held-out ratio, for ``tail_ratio``
@@ -314,11 +351,10 @@ class OnlineCostModel:
             guess = _frame(rung.full(), z, r)
             rung.errors.append(abs(guess - time) / time)  # held out: before it learns
             rung.observe(time, z, LEAST_SLACK * self.least, light=max(guess, time) < self.tail_min_time)
-        self._faces = self._lam * self._faces + cols[0].sum()
-        self._verts = self._lam * self._verts + cols[1].sum()
+        self._faces = self._lam * self._faces + z[1 : 1 + r].sum()
+        self._verts = self._lam * self._verts + z[1 + r : 1 + 2 * r].sum()
         self.frames += 1
         self._select()
-        return True
 
     def observe_frame(self, time: float, vertices: int, terms=None, splats: int = 0) -> bool:
         """``FrameCostModel.observe_frame``: ``observe`` with the frame's terms, ``update`` without them."""
@@ -336,6 +372,7 @@ class OnlineCostModel:
         ``cap`` until ``least`` frames are known — an uncalibrated model is as likely to under- as to
         overestimate, and the first selection of a heavy scene is otherwise its worst frames; at most ``cap``
         afterwards, so one stalled stretch cannot starve the picture."""
+        self.flush()
         if len(self._ratios) < least:
             return float(cap)
         return float(np.clip(np.quantile(np.fromiter(self._ratios, float), q), floor, cap))
@@ -352,6 +389,7 @@ class OnlineCostModel:
     @property
     def updates(self) -> int:
         """``CostModel.updates``: frames used."""
+        self.flush()
         return self.frames
 
     def scores(self, frames: int | None = None) -> dict:
@@ -423,9 +461,14 @@ class OnlineCostModel:
              "_count", "_faces", "_verts", "_lam", "least")
 
     def to_state(self) -> dict:
-        """Every coefficient, covariance and history, as plain data (``from_state`` reads it back)."""
+        """Every coefficient, covariance and history, as plain data (``from_state`` reads it back); frames checked
+        but not yet folded go as they are (a snapshot does not fold them: a session saves more often than it
+        selects)."""
         rungs = {name: rung.to_state() for name, rung in self.rungs.items()}
-        return {"kind": "online", **dump_fields(self, self.STATE), "rungs": rungs}
+        out = {"kind": "online", **dump_fields(self, self.STATE), "rungs": rungs}
+        if self._queue:
+            out["queue"] = [[t, z.tolist(), empty] for t, z, empty in self._queue]
+        return out
 
     def from_state(self, state) -> None:
         """Take in ``to_state``'s data; ValueError (model unchanged) if it is of another kind or does not fit."""
@@ -439,10 +482,13 @@ class OnlineCostModel:
         for name in (state.get("chosen"), state.get("_pending")):
             if name not in MODELS:
                 raise ValueError(f"cost: unknown model {name!r}")
+        queue = queue_of(state.get("queue", []), 3 * self.algorithms + 3, BATCH_MAX)
         trial = copy.deepcopy(self)  # a bad rung leaves the model untouched
+        trial._queue = []
         load_fields(trial, state, self.STATE, "cost")
         for name, rung in trial.rungs.items():
             rung.from_state(rungs[name], f"cost.{name}")
+        trial._queue = queue
         self.__dict__.update(trial.__dict__)
 
     # ------------------------------------------------------------------ using it
@@ -450,6 +496,7 @@ class OnlineCostModel:
     @property
     def overhead(self) -> float:
         """The chosen model's fixed seconds per frame (c0); 0 for "vertex"."""
+        self.flush()
         return float(self.rungs[self.chosen].full()[0])
 
     @property
@@ -460,6 +507,7 @@ class OnlineCostModel:
         return self.rungs[self.chosen].c_vertex()
 
     def _terms(self) -> tuple:
+        self.flush()
         c, r = self.rungs[self.chosen].full(), self.algorithms
         return c[0], c[1 : 1 + r], c[1 + r : 1 + 2 * r], c[1 + 2 * r : 1 + 3 * r], c[-2], c[-1]
 
@@ -476,6 +524,7 @@ class OnlineCostModel:
 
     def predict(self, vertices) -> np.ndarray:
         """``CostModel.predict``: flat algorithm, one draw each, no pixels; faces at the ratio seen so far."""
+        self.flush()
         v = np.asarray(vertices, np.float64)
         ratio = self._faces / self._verts if self._verts > 0 else 0.0
         return self.predict_terms(ratio * v, v, 0.0, 0, 1.0)
@@ -486,6 +535,7 @@ class OnlineCostModel:
 
     def predict_frame(self, triangles, vertices, pixels, draws, splats=0) -> float:
         """Whole-frame seconds under the chosen model, overhead included; (R,) arrays as ``observe``."""
+        self.flush()
         r = self.algorithms
         parts = [np.broadcast_to(np.asarray(a, np.float64).reshape(-1), (r,)) for a in (triangles, vertices, pixels)]
         z = np.concatenate([[1.0], *parts, [np.asarray(draws, np.float64).sum(), float(splats)]])
@@ -493,6 +543,7 @@ class OnlineCostModel:
 
     def report(self) -> dict:
         """The chosen model, why (every model's held-out p50/p95/mean and score), and the coefficients."""
+        self.flush()
         r = self.algorithms
         scores = self.scores()
         best = min(scores, key=scores.get)

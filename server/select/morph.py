@@ -37,6 +37,8 @@ import numpy as np
 
 from proto.morph import LevelRamps
 
+from . import kernels
+
 __all__ = ["Transitions", "MorphScheduler", "mark", "rep_parents"]
 
 
@@ -63,10 +65,14 @@ def mark(rep_parent: np.ndarray, black: np.ndarray, new: np.ndarray) -> tuple[np
     new        : (s,) int — the new solution's
     Returns ``kind`` (s,) int8 — +1 up-morph (a black ancestor), −1 down-morph
     (grey: ancestor of black), 0 none — and ``source`` (s,) int64: for an
-    up-morph the black ancestor, else −1. One vectorised pass per hierarchy level.
+    up-morph the black ancestor, else −1. One vectorised pass per hierarchy level (the reference), or one
+    compiled pass once the kernels are ready (``kernels.delta.mark``).
     """
     parent = np.asarray(rep_parent, np.int64)
     new = np.asarray(new, np.int64)
+    ready = kernels.compiled()
+    if ready is not None:
+        return ready.delta.mark(parent, np.asarray(black, np.int64), new)
     is_black = np.zeros(parent.size, bool)
     is_black[np.asarray(black, np.int64)] = True
     grey = np.zeros(parent.size, bool)
@@ -221,6 +227,11 @@ class MorphScheduler:
         """Per key, the widest [lo, hi] level range over two (key, lo, hi) tables."""
         if b is None:
             return a
+        ready = kernels.compiled()
+        if ready is not None and _sorted_unique(a[0]) and _sorted_unique(b[0]):  # the usual case: one merge
+            return ready.delta.union_ranges(np.asarray(a[0], np.int64), np.asarray(a[1], np.float64),
+                                            np.asarray(a[2], np.float64), np.asarray(b[0], np.int64),
+                                            np.asarray(b[1], np.float64), np.asarray(b[2], np.float64))
         key = np.concatenate([a[0], b[0]])
         lo = np.concatenate([a[1], b[1]])
         hi = np.concatenate([a[2], b[2]])
@@ -233,3 +244,7 @@ class MorphScheduler:
         first = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
         return (key[first].astype(np.int64), np.minimum.reduceat(lo[order], first),
                 np.maximum.reduceat(hi[order], first))
+
+
+def _sorted_unique(key: np.ndarray) -> bool:
+    return bool(key.size < 2 or (np.diff(key) > 0).all())

@@ -22,7 +22,7 @@ from . import kernels
 from .benefit import benefit_matrix
 from .camera import centre_offset, cull_boxes, screen_size, screen_speed
 
-__all__ = ["cached", "option_arrays", "cull", "project", "benefit_cost", "node_size", "benefit_kernel"]
+__all__ = ["cached", "option_arrays", "cull", "project", "cull_project_many", "benefit_cost", "node_size", "benefit_kernel"]
 
 
 def cached(lv, key, make):
@@ -99,10 +99,7 @@ def project(lv, rows, cams, before, dts):
         size, offset, moved = np.empty((c, v)), np.empty((c, v)), np.empty((c, v))
         kern.project(lv.object_lo, lv.object_hi, rows.astype(np.int64, copy=False), clips, planes, widths, heights,
                      many, clips[0] if before is None else before, before is not None, size, offset, moved)
-        moving = np.array([dt is not None for dt in dts])
-        if moving.any():
-            moved /= np.array([float(dt) if dt is not None else 1.0 for dt in dts])[:, None]
-        return size, offset, [moved[j] if m else None for j, m in enumerate(moving)]
+        return size, offset, _speeds(moved, dts)
     lo, hi = lv.object_lo[rows], lv.object_hi[rows]
     size, offset, speed = [], [], []
     for cam, dt in zip(cams, dts):
@@ -114,7 +111,44 @@ def project(lv, rows, cams, before, dts):
     return np.stack(size), np.stack(offset), speed
 
 
-def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=(0,), pixel_scale=1.0):
+def _speeds(moved: np.ndarray, dts) -> list:
+    """The screen speed per camera (px/s) from the distance moved, None where motion is not measured."""
+    moving = np.array([dt is not None for dt in dts])
+    if moving.any():
+        moved /= np.array([float(dt) if dt is not None else 1.0 for dt in dts])[:, None]
+    return [moved[j] if m else None for j, m in enumerate(moving)]
+
+
+def cull_project_many(lv, jobs) -> list | None:
+    """``cull`` and ``project`` of several selections over one view in one compiled pass (None until the
+    kernels are ready): jobs are (cameras, memory) pairs; per job (rows, (size, offset, speed)), the
+    numbers ``cull`` and ``project`` give for it alone."""
+    kern = _view_kernels()
+    if kern is None or not jobs:
+        return None
+    cams_all = [c for cams, _ in jobs for c in cams]
+    clips, planes, widths, heights = _stack(cams_all)
+    counts = np.array([len(cams) for cams, _ in jobs], np.int64)
+    cam_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    befores, has_before, dts_all = np.empty((len(jobs), 4, 4)), np.zeros(len(jobs), bool), []
+    for b, (cams, memory) in enumerate(jobs):
+        before, dts = _before(memory, cams)
+        befores[b] = clips[cam_start[b]] if before is None else before
+        has_before[b] = before is not None
+        dts_all.append(dts)
+    rows, row_start, size, offset, moved, out_start = kern.cull_project_many(
+        lv.object_lo, lv.object_hi, planes, clips, widths, heights, cam_start, counts > 1, befores, has_before)
+    out = []
+    for b, dts in enumerate(dts_all):
+        shape = (int(counts[b]), int(row_start[b + 1] - row_start[b]))
+        o0, o1 = out_start[b], out_start[b + 1]
+        out.append((rows[row_start[b]:row_start[b + 1]], (size[o0:o1].reshape(shape), offset[o0:o1].reshape(shape),
+                                                         _speeds(moved[o0:o1].reshape(shape), dts))))
+    return out
+
+
+def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=(0,), pixel_scale=1.0,
+                 projected=None):
     """Per visible row: (v, K) benefit and cost of each option, with the F&S factors the inputs allow.
 
     Over several cameras (an ``Interval``) benefit is their weighted sum, a row
@@ -124,6 +158,7 @@ def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=
     screen area × ``pixel_scale`` (the measured share of box area really covered).
     ``algorithms`` are the offered rendering algorithms (indices into
     ``proto.messages.ALGORITHMS``); option k draws level k // R with ``algorithms[k % R]``.
+    ``projected``: ``project``'s (size, offset, speed) of ``rows``, when a batch computed it already.
     """
     r = len(algorithms)
     rep, valid, faces, vertices = option_arrays(lv, rows, r)
@@ -136,8 +171,10 @@ def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=
     if memory is not None and memory.option is not None:
         previous = memory.option[lv.ids[rows]] if lv.ids is not None else memory.option[rows]
     klass = lv.object_class[rows] if lv.object_class is not None and scene.importance is not None else None
-    before, dts = _before(memory, cams)
-    size, offset, speed = project(lv, rows, cams, before, dts)
+    if projected is None:
+        before, dts = _before(memory, cams)
+        projected = project(lv, rows, cams, before, dts)
+    size, offset, speed = projected
     if lv.parent is not None:
         size = node_size(lv, rows, size)
     weight = np.array([cam.weight for cam in cams], np.float64)

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import kernels
 from .snapshot import dump_fields, load_fields
 
 __all__ = ["MotionLimits", "Pose", "Predictor", "conservative_camera", "tour_speed"]
@@ -89,8 +90,13 @@ class Pose:
     up: np.ndarray
 
 
+def _norm(v: np.ndarray) -> float:
+    """``np.linalg.norm`` of a float64 vector — the same number (it is √(v·v)) without its general machinery."""
+    return math.sqrt(float(v.dot(v)))
+
+
 def _unit(v: np.ndarray) -> tuple[np.ndarray, float]:
-    n = float(np.linalg.norm(v))
+    n = _norm(v)
     return (v / n if n > _EPS else v), n
 
 
@@ -169,7 +175,7 @@ def _tangent(v0: np.ndarray, rate: np.ndarray, limit: float) -> tuple[np.ndarray
     if n2 <= 1e-18:
         return np.zeros(3), 0.0
     rate = rate - np.dot(rate, v0) / n2 * v0
-    angular = float(np.linalg.norm(rate)) / math.sqrt(n2)
+    angular = _norm(rate) / math.sqrt(n2)
     if angular > limit:
         rate = rate * (limit / angular)
     return rate, angular
@@ -261,21 +267,23 @@ class Predictor:
             return False
         if t > latest + self.gap:
             return self._reset(t, x)
-        if t >= latest:
-            before = self._t < t
-            if before.any():
-                i = int(np.flatnonzero(before)[-1])
-                if self._teleport(t - self._t[i], self._x[i], x):
-                    return self._reset(t, x)
-        i = int(np.searchsorted(self._t, t))
-        if i < len(self._t) and self._t[i] == t:
+        n = len(self._t)
+        i = n if t > latest else int(np.searchsorted(self._t, t))  # where t goes (the samples are in time order)
+        if t >= latest and i > 0:  # the newest sample before it
+            if self._teleport(t - self._t[i - 1], self._x[i - 1], x):
+                return self._reset(t, x)
+        if i < n and self._t[i] == t:
             self._x[i] = x
+        elif i == n:  # the usual case, a newer pose: appended, without np.insert's general machinery
+            self._t = np.concatenate((self._t, (t,)))
+            self._x = np.concatenate((self._x, x[None, :]))
         else:
             self._t = np.insert(self._t, i, t)
             self._x = np.insert(self._x, i, x, axis=0)
-        keep = self._t >= self._t[-1] - self.window
-        keep[-2:] = True
-        self._t, self._x = self._t[keep], self._x[keep]
+        # The window: a suffix of the samples in time order, and at least the newest two.
+        first = min(int(np.searchsorted(self._t, self._t[-1] - self.window)), max(len(self._t) - 2, 0))
+        if first:
+            self._t, self._x = self._t[first:], self._x[first:]
         # Poses come many times per τ and predictions are asked for once per τ: fit lazily, but at least
         # every REFIT_EVERY seconds of samples so the fastest motion seen (θ, ω) is still tracked.
         self._stale = True
@@ -322,7 +330,7 @@ class Predictor:
 
     def _teleport(self, dt: float, x0: np.ndarray, x1: np.ndarray) -> bool:
         """Whether going from x0 to x1 in dt seconds is faster than any navigation: a jump, not a motion."""
-        jump = float(np.linalg.norm(x1[:3] - x0[:3]))
+        jump = _norm(x1[:3] - x0[:3])
         if self.limits.speed is not None:
             far = jump > 3.0 * self.limits.speed * dt + 5.0
         else:
@@ -336,6 +344,11 @@ class Predictor:
         s = self._t - self._t[-1]
         x = self._x
         n = len(s)
+        ready = kernels.compiled()
+        if ready is not None:  # the same fit in one compiled pass (``kernels.motion``)
+            self._a, self._b = ready.motion.refit(self._t, x, self.half_life, ROUNDS, HUBER, SHRINK, _SCALE_FLOOR)
+            self._seen(s, self._b)
+            return
         recency = 0.5 ** (-s / self.half_life)
         powers = np.stack([np.ones_like(s), s, s * s])
         w = np.repeat(recency[:, None], 9, axis=1)
@@ -348,36 +361,50 @@ class Predictor:
         if n > 2 and SHRINK > 0:
             b = b * _significance(s, x - a - b * s[:, None], w, b)
         self._a, self._b = a, b
-        if n >= 3 and -s[0] >= 0.25 * self.window:
-            self._speed_seen = max(self._speed_seen, float(np.linalg.norm(b[:3])))
-            self._turn_seen = max(self._turn_seen, _tangent(a[3:6], b[3:6], math.inf)[1])
+        self._seen(s, b)
+
+    def _seen(self, s: np.ndarray, b: np.ndarray) -> None:
+        """The fastest motion seen (θ, ω without limits), from fits over at least a quarter of the window."""
+        if len(s) >= 3 and -s[0] >= 0.25 * self.window:
+            self._speed_seen = max(self._speed_seen, _norm(b[:3]))
+            self._turn_seen = max(self._turn_seen, _tangent(self._a[3:6], b[3:6], math.inf)[1])
 
     # ------------------------------------------------------------------ output
 
     def pose(self, t: float) -> Pose:
         """The predicted pose at client time ``t``: the fitted line evaluated at t, no faster than θ and ω."""
+        return self.poses([t])[0]
+
+    def poses(self, times) -> list[Pose]:
+        """``pose`` at each of ``times``; the rates (clamped to θ and ω) are worked out once for all of them."""
         if not len(self._t):
             raise ValueError("no camera sample yet")
-        t = float(t)
-        if not math.isfinite(t):
-            raise ValueError(f"t must be finite, got {t!r}")
-        h = t - float(self._t[-1])
+        times = [float(t) for t in times]
+        for t in times:
+            if not math.isfinite(t):
+                raise ValueError(f"t must be finite, got {t!r}")
         self._fit()
         a, b = self._a, self._b
+        theta, omega = self.theta, self.omega
         velocity = b[:3]
-        speed = float(np.linalg.norm(velocity))
-        if speed > self.theta:
-            velocity = velocity * (self.theta / speed)
-        eye = a[:3] + velocity * h
-        f_rate, _ = _tangent(a[3:6], b[3:6], self.omega)
-        forward, n = _unit(a[3:6] + f_rate * h)
-        if n <= 1e-9:
-            forward = self._x[-1, 3:6].copy()
-        u_rate, _ = _tangent(a[6:9], b[6:9], self.omega)
-        up = a[6:9] + u_rate * h
-        if np.linalg.norm(up - np.dot(up, forward) * forward) <= 1e-9:
-            up = self._x[-1, 6:9]
-        return Pose(eye=eye, forward=forward, up=_orthogonal_up(forward, up))
+        speed = _norm(velocity)
+        if speed > theta:
+            velocity = velocity * (theta / speed)
+        f_rate, _ = _tangent(a[3:6], b[3:6], omega)
+        u_rate, _ = _tangent(a[6:9], b[6:9], omega)
+        latest = float(self._t[-1])
+        out = []
+        for t in times:
+            h = t - latest
+            eye = a[:3] + velocity * h
+            forward, n = _unit(a[3:6] + f_rate * h)
+            if n <= 1e-9:
+                forward = self._x[-1, 3:6].copy()
+            up = a[6:9] + u_rate * h
+            if _norm(up - np.dot(up, forward) * forward) <= 1e-9:
+                up = self._x[-1, 6:9]
+            out.append(Pose(eye=eye, forward=forward, up=_orthogonal_up(forward, up)))
+        return out
 
     def samples(self, t0: float, t1: float, k: int = 3) -> list[tuple[float, Pose]]:
         """``k`` predicted poses sampling [t0, t1) at interval midpoints: Zach's sampled future cameras t_k."""
@@ -385,7 +412,7 @@ class Predictor:
             raise ValueError(f"k must be at least 1, got {k}")
         step = (float(t1) - float(t0)) / k
         times = [float(t0) + (i + 0.5) * step for i in range(k)]
-        return [(t, self.pose(t)) for t in times]
+        return list(zip(times, self.poses(times)))
 
 
 def conservative_camera(

@@ -30,7 +30,8 @@ from .camera import View, cull_hierarchy, widened
 from .cost import CostModel
 from .solvers.candidates import NO_LIMIT, Candidates, TimeLimit
 
-__all__ = ["Levels", "Scene", "Memory", "Choice", "Interval", "select", "HIERARCHICAL", "MIXED", "DEFAULT_FACTORS"]
+__all__ = ["Levels", "Scene", "Memory", "Choice", "Interval", "Culled", "select", "cull_many", "HIERARCHICAL",
+           "MIXED", "DEFAULT_FACTORS"]
 
 #: The benefit factors a session without its own uses (one object: "auto" accuracy resolves once on it).
 DEFAULT_FACTORS = BenefitFactors()
@@ -231,6 +232,40 @@ class Choice:
     pixels: float = 0.0  # estimated pixels the drawn objects cover (box area over the sampled cameras)
 
 
+@dataclass(frozen=True)
+class Culled:
+    """What a batch (``cull_many``) found for one selection: its cameras, the flat view's rows they see, and
+    the rows' (size, offset, speed) under each camera (``options.project``)."""
+
+    cams: list
+    rows: np.ndarray
+    projected: tuple
+
+
+def cull_many(requests: list) -> list[Culled | None]:
+    """Cull and project the selections of many sessions at once: one compiled pass over all their cameras per
+    scene view (sessions of one scene share its index). ``requests``: per selection (scene, view, solver,
+    margin_deg, memory, t) as ``select`` takes them, or None. Per request a ``Culled`` to hand to ``select``,
+    or None where the batch does not apply (the hierarchical and mixed solvers cull their own views; before
+    the kernels are ready). ``select`` with it chooses exactly what it chooses alone."""
+    out: list[Culled | None] = [None] * len(requests)
+    groups: dict[int, list[tuple[int, object, list, object]]] = {}
+    for i, req in enumerate(requests):
+        if req is None:
+            continue
+        scene, view, solver, margin_deg, memory, t = req
+        if isinstance(scene, Levels) or solver in HIERARCHICAL or solver in MIXED:
+            continue
+        groups.setdefault(id(scene.flat), []).append((i, scene.flat, _cameras(view, margin_deg, t), memory))
+    for members in groups.values():
+        done = options.cull_project_many(members[0][1], [(cams, memory) for _, _, cams, memory in members])
+        if done is None:
+            continue
+        for (i, _, cams, _), (rows, projected) in zip(members, done):
+            out[i] = Culled(cams, rows, projected)
+    return out
+
+
 def select(
     scene: Scene | Levels,
     view: View | Interval,
@@ -245,8 +280,11 @@ def select(
     limit: TimeLimit = NO_LIMIT,
     algorithms: tuple = (0,),
     pixel_scale: float = 1.0,
+    culled: Culled | None = None,
 ) -> Choice:
     """Choose representations for ``view`` within ``budget`` seconds with the solver called ``solver``.
+
+    ``culled``: this selection's part of a batch (``cull_many``), which did the culling and projection.
 
     ``algorithms`` are the rendering algorithms the client offers (indices into
     ``proto.messages.ALGORITHMS``): the flat solvers choose one per drawn
@@ -268,7 +306,7 @@ def select(
     view_levels = scene.hierarchy if solver in HIERARCHICAL and scene.hierarchy is not None else scene.flat
     factors = resolved_accuracy(factors, hierarchical=solver in HIERARCHICAL, errors=view_levels.rep_error is not None)
     solve = solvers.get(solver)
-    cams = _cameras(view, margin_deg, t)
+    cams = _cameras(view, margin_deg, t) if culled is None else culled.cams
     if solver in HIERARCHICAL:
         if scene.hierarchy is None:
             raise ValueError("the hierarchical solver needs the scene's hierarchical view (Scene.of)")
@@ -277,7 +315,7 @@ def select(
             choice = replace(choice, algorithm=np.full(choice.reps.size, int(algorithms[0]), np.int64))
     else:
         choice = _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors, limit,
-                              tuple(int(a) for a in algorithms), float(pixel_scale))
+                              tuple(int(a) for a in algorithms), float(pixel_scale), culled)
     if memory is not None:
         memory.view, memory.t = cams[0].view, cams[0].t
     return choice
@@ -293,17 +331,18 @@ def _remember(memory: Memory | None, scene: Scene, ids: np.ndarray, option: np.n
 
 
 def _select_flat(scene, cams, cost_model, budget, solver, solve, memory, factors, limit,
-                 algorithms=(0,), pixel_scale=1.0) -> Choice:
+                 algorithms=(0,), pixel_scale=1.0, culled=None) -> Choice:
     lv = scene.flat
-    rows = np.nonzero(options.cull(lv, cams))[0]
+    rows = np.nonzero(options.cull(lv, cams))[0] if culled is None else culled.rows
     smooth, trees = None, np.zeros(0, np.int64)
     if solver in MIXED:
         smooth, trees = _smooth(scene, cams, cost_model)
     if rows.size == 0 and trees.size == 0:
         _remember(memory, scene, np.zeros(0, np.int64), np.zeros(0, np.int64))
         return Choice(np.zeros(0, np.int64), 0.0, 0.0, 0, {"stopped": "done"})
-    size, rep, valid, faces, benefit, cost, previous = options.benefit_cost(lv, rows, scene, cams, cost_model,
-                                                                            memory, factors, algorithms, pixel_scale)
+    size, rep, valid, faces, benefit, cost, previous = options.benefit_cost(
+        lv, rows, scene, cams, cost_model, memory, factors, algorithms, pixel_scale,
+        None if culled is None else culled.projected)
     cand = Candidates.of(benefit, cost, valid, size=size, faces=faces,
                          previous=None if previous is None else previous.astype(np.int64))
     state = dict(memory.solver) if memory is not None else {}

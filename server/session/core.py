@@ -107,6 +107,7 @@ class Session:
         self._last_reset = -math.inf  # when the last reset selection began (server clock)
         self._restored: dict | None = None  # what ``restore`` took in that the hello applies or discards
         self._saved: tuple | None = None  # ``_progress()`` at the last snapshot (see ``dirty``)
+        self._framed: tuple | None = None  # the selection framed at a time (``_frame``), until it runs
 
     def _new_parts(self) -> tuple:
         """A fresh cost model, clock sync, delivery estimate, timer, pipeline and (empty) mirror."""
@@ -120,7 +121,7 @@ class Session:
         c = self.config
         if c.cost_model == "zach":
             return CostModel(c_vertex=c_vertex, alpha=c.alpha)
-        return OnlineCostModel(algorithms=len(ALGORITHMS), c_vertex=c_vertex)
+        return OnlineCostModel(algorithms=len(ALGORITHMS), c_vertex=c_vertex, batch=True)
 
     # ------------------------------------------------------------------ input
 
@@ -293,8 +294,9 @@ class Session:
     def _selection_due(self) -> float | None:
         return self.timing.selection_due(self.camera is not None, self.lead(), self.clock)
 
-    def poll(self, now: float) -> list[BaseModel]:
-        """Send a ping and run the selection if they are due; return what to send."""
+    def poll(self, now: float, culled=None) -> list[BaseModel]:
+        """Send a ping and run the selection if they are due; return what to send. ``culled``: the culling
+        and projection of this selection, done by a batch of sessions (``selection_request``)."""
         if self.state is not SessionState.ACTIVE:
             return []
         out: list[BaseModel] = []
@@ -303,21 +305,45 @@ class Session:
             self._next_ping = now + self.config.ping_interval
         due = self._selection_due()
         if due is not None and now >= due:
-            out.append(self._select(now))
+            out.append(self._select(now, culled))
         return out
 
-    def _select(self, now: float):
+    def selection_request(self, now: float) -> tuple | None:
+        """What a batch needs to cull and project for this session's selection due at ``now``
+        (``selection.cull_many``'s request), or None when none is due. Changes nothing ``poll`` sees."""
+        if self.state is not SessionState.ACTIVE:
+            return None
+        due = self._selection_due()
+        if due is None or now < due:
+            return None
+        _, _, _, _, t0, _, view, margin = self._frame(now)
+        return self.pipeline.scene, view, self.hello.solver, margin, self.pipeline.memory, t0
+
+    def _frame(self, now: float) -> tuple:
+        """(client now, reset, start, switch, t0, t1, view, margin) of the selection started at ``now``: the
+        same until the session changes (kept, so a batch's request and the poll share one computation)."""
+        key = (now, self.seq, self.acks, self.clock.offset, self.predictor.resets if self.predictor else 0,
+               self.predictor.latest if self.predictor else None, self.timing.switch, self.timing.reset)
+        if self._framed is not None and self._framed[0] == key:
+            return self._framed[1]
         hello, camera = self.hello, self.camera
         assert hello is not None and camera is not None
         c_now = self.clock.client_time(now)
         reset, start, switch, t0, t1 = self.timing.plan(c_now, self.lead())
-        if reset:
-            self._last_reset = now
         view, margin = self.timing.cameras(self.config, hello, camera, self.predictor, self.pipeline.table.bounds,
                                            c_now, t0, t1)
+        self._framed = (key, (c_now, reset, start, switch, t0, t1, view, margin))
+        return self._framed[1]
+
+    def _select(self, now: float, culled=None):
+        hello = self.hello
+        c_now, reset, start, switch, t0, t1, view, margin = self._frame(now)
+        self._framed = None
+        if reset:
+            self._last_reset = now
         self.seq += 1
         delta, nbytes, took = self.pipeline.select(self.seq, now, hello, view, margin, t0, start, switch, reset,
-                                                   self.cost, self.mirror, self.delivery, self._stopwatch)
+                                                   self.cost, self.mirror, self.delivery, self._stopwatch, culled)
         self.bytes_sent += nbytes
         self.delivery.sent(self.seq, now, nbytes, took)
         self.timing.selected(self.seq, now, c_now, start, switch, reset, took, nbytes, self.delivery, self.clock)

@@ -26,9 +26,10 @@ import numpy as np
 from proto.manifest import digest
 from proto.messages import Ack
 
+from ..select import kernels
 from .table import SceneTable
 
-__all__ = ["CacheMirror"]
+__all__ = ["CacheMirror", "expand"]
 
 log = logging.getLogger("walkstream.session")
 
@@ -84,6 +85,8 @@ class CacheMirror:
         self.checks = 0  # acks whose held/held_bytes/digest were compared with the mirror
         self.mismatch = 0  # ... and did not match (each triggers a resync)
         self.resyncs = 0  # deltas that dropped everything and restarted the mirror empty
+        self._planned = 0  # plans so far (what ``to_state``'s packed arrays were packed after)
+        self._packed: tuple | None = None
 
     # ------------------------------------------------------------------ the client's word
 
@@ -92,6 +95,7 @@ class CacheMirror:
         resident = np.zeros(self.resident.size, bool)
         resident[held] = True
         self.resident, self.sent, self.resync = resident, resident.copy(), False
+        self._planned += 1
         self.models_sent = bool(self.table.rep_trees[held].any()) or self.models_sent
         self.recount()
 
@@ -105,11 +109,15 @@ class CacheMirror:
 
     # ------------------------------------------------------------------ deltas
 
-    def plan(self, selected: np.ndarray, needed: np.ndarray, seq: int) -> tuple[np.ndarray, np.ndarray]:
+    def plan(self, selected: np.ndarray, needed: np.ndarray, seq: int, ranges=None) -> tuple[np.ndarray, np.ndarray]:
         """Bring the mirror to what delta ``seq`` needs, within the budget; returns (reps to add, reps to drop).
 
         selected : reps the selection draws (meshes, drawn tree groups) — first in line when not all fits
         needed : every rep the schedule draws from its window on (ramp intermediates, morph sources, …)
+        ranges : (key, lo, hi) — more of those, as each object key's level range (``expand``)
+
+        Once the kernels are ready the expansion and the whole update are one compiled pass
+        (``kernels.delta.plan``); the numpy steps below are its reference.
 
         When what is needed alone exceeds the budget, it is sent in priority
         order (the selection before the rest, coarse before fine, small before
@@ -117,6 +125,13 @@ class CacheMirror:
         counted in ``over_budget``.
         """
         rep_bytes, rep_level = self.table.rep_bytes, self.table.rep_level
+        selected, needed = np.asarray(selected, np.int64), np.asarray(needed, np.int64)
+        self._planned += 1
+        ready = kernels.compiled()
+        if ready is not None:
+            return self._plan_compiled(ready.delta.plan, selected, needed, seq, ranges)
+        if ranges is not None:
+            needed = np.concatenate([expand(*ranges), needed])
         want = np.union1d(needed, selected).astype(np.int64)
         later = ~np.isin(want, selected)
         want = want[np.lexsort((rep_bytes[want], rep_level[want], later))]
@@ -140,6 +155,26 @@ class CacheMirror:
         self.over_budget += int((~self.resident[want]).sum())
         self._records[seq] = _Sent(*self.held, add=new, drop=drop)
         if len(self._records) > 256:  # a client that stopped acking must not grow this without bound
+            self._records.pop(min(self._records))
+        return new, drop
+
+    def _plan_compiled(self, kernel, selected, needed, seq, ranges) -> tuple[np.ndarray, np.ndarray]:
+        key, lo, hi = ranges if ranges is not None else (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+        t = self.table
+        new, drop, d_count, d_bytes, d_digest, evicted, over = kernel(
+            selected, np.asarray(key, np.int64), np.asarray(lo, np.float64), np.asarray(hi, np.float64), needed,
+            t.rep_bytes, t.rep_level, t.rep_mix, self.budget, self.resident, self.sent, self.last_used, seq,
+            self.resync, self.held[1])
+        self.held[0] += int(d_count)
+        self.held[1] += int(d_bytes)
+        self.held[2] ^= int(d_digest)
+        self.evicted += int(evicted)
+        if self.resync:
+            self.resync, self._epoch = False, seq
+            self.resyncs += 1
+        self.over_budget += int(over)
+        self._records[seq] = _Sent(*self.held, add=new, drop=drop)
+        if len(self._records) > 256:
             self._records.pop(min(self._records))
         return new, drop
 
@@ -224,12 +259,21 @@ class CacheMirror:
     # ------------------------------------------------------------------ snapshot
 
     def to_state(self) -> dict:
-        """The mirror as plain data: bitsets, the last use of each held rep, totals and flags."""
-        resident = self.resident
+        """The mirror as plain data: bitsets, the last use of each held rep, totals and flags.
+
+        A session saves far more often than its mirror changes (acks, every quarter second): the packed arrays
+        are kept until it does. Every change of the held set moves the totals' digest; the sent set and the
+        last uses move only with a delta's plan."""
+        key = (tuple(self.held), self._planned)
+        if self._packed is None or self._packed[0] != key:
+            resident = self.resident
+            self._packed = (key, np.packbits(resident).tobytes(), np.packbits(self.sent).tobytes(),
+                            zlib.compress(self.last_used[resident].astype("<i4").tobytes(), 1))  # runs of equal seqs
+        _, resident_bits, sent_bits, used = self._packed
         return {
-            "resident": np.packbits(resident).tobytes(),
-            "sent": np.packbits(self.sent).tobytes(),
-            "used": zlib.compress(self.last_used[resident].astype("<i4").tobytes(), 1),  # runs of equal seqs
+            "resident": resident_bits,
+            "sent": sent_bits,
+            "used": used,
             "held": [int(x) for x in self.held],
             "models_sent": bool(self.models_sent),
             "resync": bool(self.resync),
@@ -284,3 +328,15 @@ class CacheMirror:
         mirror.models_sent, mirror.resync = flags
         mirror.recount()
         return mirror
+
+
+def expand(key: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Representation ids key + l for every whole level l in [floor(lo), ceil(hi)], per row."""
+    if key.size == 0:
+        return np.zeros(0, np.int64)
+    first = np.floor(lo + 1e-9).astype(np.int64)
+    count = np.ceil(hi - 1e-9).astype(np.int64) - first + 1
+    count = np.maximum(count, 1)
+    base = np.repeat(key + first, count)
+    step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    return np.unique(base + step)

@@ -31,6 +31,7 @@ from ..select.snapshot import dump_fields, load_fields
 from ..select.solvers.candidates import NO_LIMIT, TimeLimit
 from .gate import through_gate
 from .mirror import CacheMirror
+from .payloads import Payloads
 from .table import SceneTable
 
 __all__ = ["Pipeline", "MEAN_FLOOR"]
@@ -110,9 +111,10 @@ class Pipeline:
 
     def select(self, seq: int, now: float, hello, view, margin: float, t0: float, start: float, switch: float,
                reset: bool, cost: FrameCostModel, mirror: CacheMirror, delivery: Delivery,
-               stopwatch: Callable[[], float] | None) -> tuple[Delta, int, float]:
+               stopwatch: Callable[[], float] | None, culled=None) -> tuple[Delta, int, float]:
         """Delta ``seq`` for the cameras ``view`` (widened by ``margin`` degrees) over the interval from ``t0``,
-        its schedule running from ``start`` to ``switch``; returns (delta, payload bytes, compute seconds)."""
+        its schedule running from ``start`` to ``switch``; returns (delta, payload bytes, compute seconds).
+        ``culled``: the culling and projection a batch of sessions did for it (``selection.cull_many``)."""
         config, table = self.config, self.table
         tau = config.tau
         # The fitted model's fixed per-frame cost (clear, finish) is spent whatever is drawn. And the frame at
@@ -135,7 +137,7 @@ class Pipeline:
         limit = NO_LIMIT if stopwatch is None else TimeLimit(stopwatch, began + config.select_limit)
         choice = select(self.scene, view, cost, budget, hello.solver, margin,
                         memory=self.memory, t=t0, limit=limit, factors=config.factors,
-                        algorithms=self.algorithms, pixel_scale=self.pixel_scale)
+                        algorithms=self.algorithms, pixel_scale=self.pixel_scale, culled=culled)
         self.last_stats = dict(choice.stats)
         self.pixels_predicted[seq] = choice.pixels
         if len(self.pixels_predicted) > 64:
@@ -149,7 +151,6 @@ class Pipeline:
         self.drawn = reps
         self.prev_rep[:] = -1
         self.prev_rep[table.rep_object[reps]] = reps
-        needed = _expand(tr.needed_key, tr.needed_lo, tr.needed_hi)
         vegetation, resolution, ramps = [], [], Morphs()
         drawn_groups = groups = np.zeros(0, np.int64)
         if choice.x is not None and choice.x_reps is not None:
@@ -168,7 +169,8 @@ class Pipeline:
                 reps, -1, rep_object=arrays["rep_object"], resident=arrays["resident"], eligible=arrays["eligible"])])
         # The previous ladder governs until this delta's switch, and its steps ramp back after: kept too.
         new, drop = mirror.plan(np.concatenate([reps, drawn_groups]),
-                                np.concatenate([needed, groups, ahead, below, self.ladder_to]), seq)
+                                np.concatenate([groups, ahead, below, self.ladder_to]), seq,
+                                ranges=(tr.needed_key, tr.needed_lo, tr.needed_hi))
         ladder = self._ladder(reps, view, mirror) if hello.governor else Ladder.empty()
         self.ladder_to = ladder.to
         self.shed = ladder.shed
@@ -258,41 +260,18 @@ class Pipeline:
 
     def _adds(self, new: np.ndarray, mirror: CacheMirror) -> tuple[list[RepresentationAdd], list[ModelAdd], int]:
         """The adds for ``new`` (meshes with their morph maps, tree groups' instance lists), the store's tree
-        models with the session's first tree group, and the payload bytes of both."""
-        store, table = self.store, self.table
-        index = store.index
-        blobs = store.geometries(new.tolist()) if new.size else []
-        trees = table.rep_trees[new]
-        morph_maps = [None] * new.size
-        if self.morph.morph and new.size:
-            with_map = new[table.rep_morph[new] & ~trees]
-            maps = dict(zip(with_map.tolist(), store.morphs(with_map.tolist()))) if with_map.size else {}
-            morph_maps = [maps.get(r) for r in new.tolist()]
-        add = [
-            RepresentationAdd(rep=int(r), object=int(table.rep_object[r]), level=int(table.rep_level[r]),
-                              geometry=blob, morph=mm, kind="trees" if t else "mesh")
-            for r, blob, mm, t in zip(new.tolist(), blobs, morph_maps, trees.tolist())
-        ]
+        models with the session's first tree group, and the payload bytes of both — as the scene's shared
+        cache holds them (``payloads``: read and packed once for every session)."""
+        payloads = Payloads.of(self.store)
+        add = payloads.adds(new.tolist(), self.morph.morph) if new.size else []
         models: list[ModelAdd] = []
-        if trees.any() and not mirror.models_sent:  # the groups' instances name these: sent once, kept
-            mirror.models_sent = True
-            n = int(index.model_points.shape[0])
-            models = [ModelAdd(model=i, points=b) for i, b in enumerate(store.model_geometries(range(n)))]
-        geometry = sum(len(b) for b in blobs)
-        maps = sum(len(m) for m in morph_maps if m)
+        if new.size and self.table.rep_trees[new].any() and not mirror.models_sent:
+            mirror.models_sent = True  # the groups' instances name these: sent once, kept
+            models = payloads.models()
+        geometry = sum(len(a.geometry) for a in add)
+        maps = sum(len(a.morph) for a in add if a.morph)
         nbytes = geometry + maps + sum(len(m.points) for m in models)
         if geometry:  # what morph maps add to the geometry they come with, as this session sees it
             self.morph_share += 0.3 * (maps / geometry - self.morph_share)
         return add, models, nbytes
 
-
-def _expand(key: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Representation ids key + l for every whole level l in [floor(lo), ceil(hi)], per row."""
-    if key.size == 0:
-        return np.zeros(0, np.int64)
-    first = np.floor(lo + 1e-9).astype(np.int64)
-    count = np.ceil(hi - 1e-9).astype(np.int64) - first + 1
-    count = np.maximum(count, 1)
-    base = np.repeat(key + first, count)
-    step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
-    return np.unique(base + step)

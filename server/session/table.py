@@ -128,6 +128,19 @@ class SceneTable:
         return scene
 
 
+    def prepare(self, importance: dict, algorithms: int = 3) -> None:
+        """Build now what sessions would otherwise build at their first hello or selection: the solvers' views
+        with these importance weights and their option arrays for every count of offered algorithms (a
+        server calls it as it opens its stores, so no session's first τ pays for the scene)."""
+        from ..select.options import option_arrays
+
+        scene = self.scene(importance)
+        for view in (scene.flat, scene.hierarchy, scene.vegetation):
+            if view is not None and view.n:
+                for r in range(1, algorithms + 1):
+                    option_arrays(view, np.zeros(1, np.int64), r)
+
+
 def _ref(index) -> Callable[[], object]:
     try:
         return weakref.ref(index)

@@ -18,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bench.loadtest.client import ClientConfig, HeldSet, RendererModel, SimulatedClient, payload_counts, unframe
-from bench.loadtest.metrics import histogram_quantile, parse_metrics
+from bench.loadtest.metrics import histogram_quantile, merge, parse_metrics, proc_cpu, tree_cpu
 from bench.loadtest.run import LoadtestError, run_loadtest
 from client.cache import ResidentCache
 from proto.codec import decode_client, encode
@@ -171,7 +171,7 @@ def test_short_real_run(demo_store):
               s.sessions_per_core, s.server_cpu_per_session_s, s.frame_p95_ms):
         assert v is not None and math.isfinite(v) and v > 0
     assert s.selection_p50_ms <= s.selection_p99_ms
-    assert s.selections_measured > 0
+    assert s.selections_measured > 0 and s.polls_per_tick is not None and s.polls_per_tick >= 1.0
     assert s.selections_due_share is not None and s.selections_due_share > 0
     assert s.server_pid is not None and s.scene
     r = s.reference
@@ -184,17 +184,55 @@ def test_cli_json(demo_store):
     """``walkstream loadtest --json`` prints one parseable JSON object on stdout with the summary's keys."""
     out = subprocess.run(
         [sys.executable, "-m", "walkstream", "loadtest", "--store", str(demo_store), "--clients", "2",
-         "--duration", "2.5", "--ramp", "0.5", "--reference", "0", "--json"],
-        cwd=ROOT, capture_output=True, text=True, timeout=120,
+         "--duration", "2.5", "--ramp", "0.5", "--reference", "0", "--workers", "1", "--workers", "2",
+         "--no-coherent", "--json"],
+        cwd=ROOT, capture_output=True, text=True, timeout=240,
     )
     assert out.returncode == 0, out.stderr[-2000:]
     summary = json.loads(out.stdout.strip().splitlines()[-1])
     for key in ("clients", "sessions_opened", "selections_per_s", "selection_p50_ms", "selection_p99_ms",
                 "delta_interarrival_p99_ms", "bytes_per_s", "server_cpu_per_session_s", "sessions_per_core",
-                "errors", "frame_p95_ms", "frame_target_ms", "reference", "goal_met"):
+                "errors", "frame_p95_ms", "frame_target_ms", "reference", "goal_met", "selections_due_share",
+                "generator_cpu_per_session_s", "generator_cores", "server_cores", "runs", "goals"):
         assert key in summary
     assert summary["clients"] == 2 and summary["sessions_opened"] == 2 and summary["errors"] == {}
+    # A run per worker count, each with its own server of that many processes, and the scaling between them.
+    assert [r["workers"] for r in summary["runs"]] == [1, 2]
+    assert all(r["server_cpu_per_session_s"] > 0 and r["sessions_opened"] == 2 for r in summary["runs"])
+    goals = {(g["goal"], g.get("workers")): g for g in summary["goals"]}
+    assert set(goals) == {("sessions_per_core", 1), ("sessions_per_core", 2), ("scaling", 2)}
+    assert all(isinstance(g["goal_met"], bool) for g in goals.values())
+    assert summary["goal_met"] == all(g["goal_met"] for g in goals.values())
     assert "walkstream loadtest" in out.stderr  # the live table and the summary go to stderr
+    assert "goal scaling (2 workers)" in out.stderr
+
+
+def test_a_replica_cpu_is_its_processes_together():
+    """The CPU of a process tree counts every process below the root, and the children it already reaped."""
+    code = ("import subprocess, sys, time\n"
+            "burn = 'import time\\nt = time.process_time()\\nwhile time.process_time() - t < 0.6: pass'\n"
+            "subprocess.run([sys.executable, '-c', burn])\n"  # reaped: counted in the parent's children time
+            "p = subprocess.Popen([sys.executable, '-c', burn + '\\ntime.sleep(30)'])\n"
+            "time.sleep(3); print('ready', flush=True); time.sleep(30)")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        assert 1.2 <= tree_cpu(proc.pid) <= 3.0
+        assert proc_cpu(proc.pid) < 0.6
+    finally:
+        proc.kill()
+        proc.wait()
+    assert tree_cpu(proc.pid) is None
+
+
+def test_scrapes_of_several_servers_add_up():
+    text = ("# TYPE walkstream_cpu_seconds gauge\nwalkstream_cpu_seconds 2.5\n"
+            "# TYPE walkstream_selection_seconds histogram\n"
+            'walkstream_selection_seconds_bucket{le="0.1"} 3.0\nwalkstream_selection_seconds_bucket{le="+Inf"} 4.0\n'
+            "walkstream_selection_seconds_count 4.0\nwalkstream_selection_seconds_sum 0.5\n")
+    both = merge([parse_metrics(text, 1.0), parse_metrics(text, 2.0)])
+    assert both.values["walkstream_cpu_seconds"] == 5.0 and both.at == 2.0
+    assert both.hist["walkstream_selection_seconds"][1].tolist() == [6.0, 8.0]
 
 
 class _NoMetrics(http.server.BaseHTTPRequestHandler):

@@ -29,6 +29,8 @@ from bench.cluster import NGINX_TEMPLATE, Cluster, ClusterError, find_binary, re
 from bench.demo import WARMUP_S, summarize
 from bench.netem import DelayProxy, Link, netem_available
 from client.app import run_client
+
+from .killed import ClientUnderKill
 from proto import PROTOCOL_VERSION
 from proto.codec import decode_server, encode
 from proto.messages import Camera, Delta, Hello, Resume, Welcome
@@ -346,40 +348,38 @@ def test_the_frame_budget_holds_over_a_slow_lossy_network(cluster):
         f"{summary.max_ms:.1f} ms; load average {load:.1f} on {os.cpu_count()} cores)")
 
 
+def test_the_load_test_drives_the_cluster_and_sums_its_replicas(cluster):
+    """``walkstream loadtest --url`` through nginx, ``--metrics`` naming each replica: the sessions of both
+    replicas are counted, and so is the CPU of both (each replica's walkstream_cpu_seconds)."""
+    from bench.loadtest.run import run_loadtest
+
+    url = cluster.http.replace("http://", "ws://") + "/ws"
+    s = run_loadtest(url=url, metrics=[r.http for r in cluster.replicas], scene="demo", clients=6, duration=5.0,
+                     ramp=1.0, reference=0, admin_headers={"Authorization": f"Bearer {cluster.admin_token}"})
+    assert s.sessions_opened == 6 and s.errors == {} and s.server_errors == {}
+    assert s.mirror_checks and s.mirror_mismatch == 0  # the sessions of both replicas, from both /sessions
+    assert s.server_cpu_s is not None and s.server_cpu_s > 0 and s.selections_due_share > 0.5
+
+
 def test_a_killed_replica_hands_its_client_to_the_other_within_2s(cluster):
     """(a) SIGKILL the replica serving a client mid-session: it resumes on the other, nothing re-sent.
 
     Runs last: it leaves the cluster with one replica.
     """
-    mid = threading.Event()
-    moved = threading.Event()
-    state: dict = {"kill_seq": None}
-
-    def on_frame(rec) -> None:
-        if rec.seq >= 3:
-            mid.set()
-        if state["kill_seq"] is not None and rec.seq > state["kill_seq"] + 1:
-            moved.set()
-
-    result: dict = {}
-    worker = threading.Thread(target=lambda: result.update(run=run_client(
-        cluster.url, "demo", duration=5.0, viewport=VIEWPORT, target_frame_time=0.05, on_frame=on_frame,
-        reconnect_timeout=10.0)))
-    worker.start()
-    assert mid.wait(60), "the client never drew its third selection"
+    client = ClientUnderKill(cluster.url, 5.0, VIEWPORT)
+    assert client.mid.wait(60), "the client never drew its third selection"
     # Ours is the newest session (earlier tests' connections may still be winding down).
     holder, mine = min(((i, s) for i, ss in cluster.sessions().items() for s in ss), key=lambda x: x[1]["connected_s"])
     session = mine["session"]
-    state["kill_seq"] = mine["selections"]
+    client.kill_seq = mine["selections"]
     cluster.kill(holder)
-    assert moved.wait(20), "no new selection was drawn after the kill"
+    assert client.moved.wait(20), "no new selection was drawn after the kill"
     survivor = cluster.which(session)
-    worker.join(60)
-    run = result["run"]
+    run = client.join(60)
     assert survivor == 1 - holder
     assert run.errors == [] and len(run.reconnects) == 1, (run.errors, run.reconnects)
     rc = run.reconnects[0]
     assert rc.resumed and rc.session == session and rc.resumed_at - rc.lost_at <= 2.0, rc
     assert rc.welcome_held == rc.held > 0 and run.resent == 0
     later = _after(run, rc.resumed_at)
-    assert len(later) >= 3 and max(f.seq for f in later) > state["kill_seq"]
+    assert len(later) >= 3 and max(f.seq for f in later) > client.kill_seq

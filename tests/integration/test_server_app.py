@@ -370,10 +370,10 @@ def test_serve_refuses_an_unreachable_redis(demo_store):
 
 def test_limits_refuse_nonsense():
     for bad in (dict(max_sessions=0), dict(rate=-1), dict(burst=0.5), dict(idle_timeout=float("nan")),
-                dict(workers=0), dict(max_sessions=2.5), dict(state_ttl=0)):
+                dict(threads=0), dict(max_sessions=2.5), dict(state_ttl=0)):
         with pytest.raises(ValueError):
             ReplicaLimits(**bad)
-    assert ReplicaLimits().workers >= 1
+    assert ReplicaLimits().threads >= 1
 
 
 @settings(max_examples=100, deadline=None)

@@ -7,6 +7,9 @@ Modules, one concern each, all pure functions of arrays:
 - ``cut``: the greedy's radix cut of every increment at the budget, fill rounds, totals;
 - ``coherent``: the incremental solver's coherent step in one pass;
 - ``view``: culling, projection and the F&S benefit of a selection's cameras;
+- ``fold``: the online cost model's frame reports, folded in one pass;
+- ``delta``: a delta's morph marking, and its level ranges expanded into the cache mirror's update;
+- ``motion``: the path predictor's robust line fit;
 - ``jit``: how they are all compiled.
 
 Each has its vectorised numpy reference beside the code that calls it, and the
@@ -40,6 +43,9 @@ class Compiled:
     cut: ModuleType
     coherent: ModuleType
     view: ModuleType
+    fold: ModuleType
+    delta: ModuleType
+    motion: ModuleType
 
 
 _mode: bool | None = None  # None: kernels once warm; True: always (waits for the compile); False: never
@@ -53,12 +59,12 @@ _start_lock = threading.Lock()
 def _warm() -> None:
     global _ready, _error
     try:
-        from . import coherent, cut, hull, view
+        from . import coherent, cut, delta, fold, hull, motion, view
         from .jit import compile_module
 
-        for module in (hull, cut, coherent, view):
+        for module in (hull, cut, coherent, view, fold, delta, motion):
             compile_module(module)
-        _ready = Compiled(hull=hull, cut=cut, coherent=coherent, view=view)
+        _ready = Compiled(hull=hull, cut=cut, coherent=coherent, view=view, fold=fold, delta=delta, motion=motion)
     except Exception as e:  # numba missing or broken: the numpy reference stays in charge
         _error = e
     finally:

@@ -24,7 +24,8 @@ from ..benefit import BASE_ERROR, MIN_FACTOR
 from ..camera import SPEED_LIMIT_NDC
 from .jit import jit
 
-__all__ = ["ACCURACY_OFF", "ACCURACY_FS", "ACCURACY_ZACH", "ACCURACY_SSE", "cull_any", "project", "benefit_sum", "compile_all"]
+__all__ = ["ACCURACY_OFF", "ACCURACY_FS", "ACCURACY_ZACH", "ACCURACY_SSE", "cull_any", "project", "cull_project_many",
+           "benefit_sum", "compile_all"]
 
 ACCURACY_OFF, ACCURACY_FS, ACCURACY_ZACH, ACCURACY_SSE = 0, 1, 2, 3
 
@@ -177,6 +178,45 @@ def project(lo, hi, rows, clips, planes, widths, heights, cull, before, has_befo
                 moved[j, q] = 0.0
 
 
+@jit()
+def cull_project_many(lo, hi, planes, clips, widths, heights, cam_start, cull, befores, has_before):
+    """``cull_any`` and ``project`` for the selections of several sessions over one scene, in one pass.
+
+    Session b's cameras are cam_start[b] .. cam_start[b + 1] − 1 of planes (C, 6, 4), clips (C, 4, 4), widths
+    and heights (C,); cull, has_before (B,) bool and befores (B, 4, 4) are ``project``'s per session.
+    Returns (rows, row_start, size, offset, moved, out_start): session b's visible rows are
+    rows[row_start[b]:row_start[b + 1]] (v_b of them, in order) and its (C_b, v_b) outputs are
+    size[out_start[b]:out_start[b + 1]] (and offset, moved) in row-major order — the numbers ``cull_any`` and
+    ``project`` give for that session alone, as the same code computes them.
+    """
+    n, nb = lo.shape[0], cam_start.shape[0] - 1
+    visible = np.empty(n, np.bool_)
+    row_start = np.zeros(nb + 1, np.int64)
+    rows = np.empty(nb * n, np.int64)
+    for b in range(nb):
+        c0, c1 = cam_start[b], cam_start[b + 1]
+        cull_any(lo, hi, planes[c0:c1], visible)
+        t = row_start[b]
+        for i in range(n):
+            if visible[i]:
+                rows[t] = i
+                t += 1
+        row_start[b + 1] = t
+    out_start = np.zeros(nb + 1, np.int64)
+    for b in range(nb):
+        out_start[b + 1] = out_start[b] + (cam_start[b + 1] - cam_start[b]) * (row_start[b + 1] - row_start[b])
+    total = out_start[nb]
+    size, offset, moved = np.empty(total), np.empty(total), np.empty(total)
+    for b in range(nb):
+        c0, c1, r0, r1, o0, o1 = cam_start[b], cam_start[b + 1], row_start[b], row_start[b + 1], out_start[b], \
+            out_start[b + 1]
+        shape = (c1 - c0, r1 - r0)
+        project(lo, hi, rows[r0:r1], clips[c0:c1], planes[c0:c1], widths[c0:c1], heights[c0:c1], cull[b],
+                befores[b], has_before[b], size[o0:o1].reshape(shape), offset[o0:o1].reshape(shape),
+                moved[o0:o1].reshape(shape))
+    return rows[: row_start[nb]].copy(), row_start, size, offset, moved, out_start
+
+
 @jit(inline="always")
 def _pow(x, m):
     if m == 1.0:
@@ -302,6 +342,9 @@ def compile_all() -> None:
         for flag in (True, False):
             for before in (clips[0], frozen):
                 project(lo, hi, rows, clips, planes, wh, wh, flag, before, flag, size, offset, moved)
+        cull_project_many(lo, hi, np.concatenate([planes, planes]), np.concatenate([clips, clips]),
+                          np.ones(4), np.ones(4), np.array([0, 2, 4], np.int64), np.array([True, False]),
+                          np.tile(np.eye(4), (2, 1, 1)), np.array([True, False]))
     out = np.empty((2, 3))
     empty2, empty1 = np.zeros((0, 0)), np.zeros(0)
     valid = np.ones((2, 3), bool)

@@ -270,11 +270,11 @@ def test_malformed_frame_report_terms_harm_nothing(scenes, terms, gpu):
              "draws": 1, "terms": terms, "gpu_time": gpu}
     (err,) = _wire(s.receive(msgpack.packb({k: v for k, v in frame.items() if v is not None}), now=0.1))
     assert isinstance(err, Error) and err.code == "invalid"
-    assert s.cost.frames == 0 and s.frames == 0  # the model learnt nothing from it
+    assert s.cost.updates == 0 and s.frames == 0  # the model learnt nothing from it
     good = FrameReport(frame=2, t=0.2, time=0.02, triangles=10_000, vertices=6_000, draws=10, pixels=5_000,
                        terms={"triangles": [10_000, 0, 0], "vertices": [6_000, 0, 0], "pixels": [5_000, 0, 0],
                               "draws": [10, 0, 0]})
-    assert s.receive(encode(good), now=0.2) == [] and s.cost.frames == 1 and s.frames == 1
+    assert s.receive(encode(good), now=0.2) == [] and s.cost.updates == 1 and s.frames == 1
 
 
 def test_the_clients_own_measure_of_a_vertex_is_the_cost_models_first_guess(scenes):

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import socket
+import subprocess
+import sys
 import time
 import zlib
 
@@ -29,7 +31,7 @@ from proto.messages import (Ack, AlgorithmTerms, Camera, Delta, Error, FrameRepo
                             Welcome)
 from server.scene.store import SceneStore
 from server.session import Session, SessionConfig, SessionState
-from server.state import (MemoryStateStore, RedisStateStore, StateStoreError, open_state_store,
+from server.state import (MemoryStateStore, RedisStateStore, SqliteStateStore, StateStoreError, open_state_store,
                           unpack_snapshot)
 
 STEP = 0.1  # seconds between camera poses (the predictor keeps ~1 s of them)
@@ -451,14 +453,17 @@ def test_unreachable_redis_is_a_clear_error():
         open_state_store("mysql://db")
 
 
-@pytest.mark.parametrize("kind", ["memory", "redis"])
+@pytest.mark.parametrize("kind", ["memory", "redis", "sqlite"])
 def test_a_resumed_owner_fences_off_the_old_owners_late_saves(kind, request):
     """A resume rotates the token and saves under the new one, fenced by the old: the old replica, which has
     not yet noticed its dead connection, saves under the old token later — and must not overwrite."""
 
     async def go():
-        store = MemoryStateStore() if kind == "memory" else RedisStateStore(request.getfixturevalue("redis_url"),
-                                                                            prefix="fence:")
+        if kind == "sqlite":
+            store = open_state_store(f"sqlite:///{request.getfixturevalue('tmp_path')}/state.db")
+        else:
+            store = MemoryStateStore() if kind == "memory" else RedisStateStore(
+                request.getfixturevalue("redis_url"), prefix="fence:")
         try:
             assert await store.save("s", "old-token-0123456789", b"v1", 60.0)  # the first owner
             assert await store.save("s", "old-token-0123456789", b"v2", 60.0)  # ... again, its own token
@@ -479,3 +484,77 @@ def test_a_resumed_owner_fences_off_the_old_owners_late_saves(kind, request):
             await store.close()
 
     asyncio.run(go())
+
+
+def test_sqlite_store_expires_and_is_shared_by_every_process_that_opens_it(tmp_path):
+    path = tmp_path / "state.db"
+
+    async def go():
+        clock = FakeClock()
+        clock.now = time.time()  # the wall clock's time: the other process below reads the real one
+        store = SqliteStateStore(str(path), clock=clock, sweep=0.0)
+        assert isinstance(open_state_store(f"sqlite:///{path}"), SqliteStateStore)
+        await store.save("a", "t" * 16, b"one", ttl=10.0)
+        clock.now += 9.9
+        assert await store.load("a") == ("t" * 16, b"one")
+        clock.now += 0.2
+        assert await store.load("a") is None
+        assert await store.save("a", "z" * 16, b"anyone may take an expired one", ttl=10.0)
+        await store.save("b", "u" * 16, b"kept", ttl=100.0)
+        await store.close()
+        with pytest.raises(StateStoreError, match="closed"):
+            await store.load("b")
+
+    asyncio.run(go())
+    # Another process opens the same file and sees what this one saved; its saves are fenced alike.
+    code = (f"import asyncio; from server.state import SqliteStateStore as S\n"
+            f"async def go():\n"
+            f"    s = S({str(path)!r})\n"
+            f"    assert await s.load('b') == ('u' * 16, b'kept')\n"
+            f"    assert not await s.save('b', 'x' * 16, b'stolen', 60.0)\n"
+            f"    assert await s.save('c', 'c' * 16, b'from the other process', 60.0)\n"
+            f"    await s.close()\n"
+            f"asyncio.run(go())")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+    async def back():
+        store = SqliteStateStore(str(path))
+        assert await store.load("c") == ("c" * 16, b"from the other process")
+        assert await store.load("b") == ("u" * 16, b"kept")
+        await store.close()
+
+    asyncio.run(back())
+    with pytest.raises(ValueError, match="names its file"):
+        open_state_store("sqlite://")
+
+
+def test_racing_workers_never_both_take_a_session(tmp_path):
+    """Two processes resume the same session at once, each fenced by the old token: exactly one wins each round."""
+    path = tmp_path / "state.db"
+    code = ("import asyncio, sys; from server.state import SqliteStateStore as S\n"
+            "async def go(me):\n"
+            "    s = S(sys.argv[1]); won = 0\n"
+            "    for i in range(200):\n"
+            "        won += await s.save(f's{i}', me * 16, b'x', 60.0, fence='old-token-0123456')\n"
+            "    print(won); await s.close()\n"
+            "asyncio.run(go(sys.argv[2]))")
+
+    async def first():
+        store = SqliteStateStore(str(path))
+        for i in range(200):
+            await store.save(f"s{i}", "old-token-0123456", b"v0", 60.0)
+        await store.close()
+
+    asyncio.run(first())
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(path), me], stdout=subprocess.PIPE, text=True)
+             for me in "ab"]
+    won = [int(p.communicate(timeout=120)[0]) for p in procs]
+    assert sum(won) == 200, won  # each session went to one of them, never to both
+
+    async def check():
+        store = SqliteStateStore(str(path))
+        owners = {(await store.load(f"s{i}"))[0][0] for i in range(200)}
+        await store.close()
+        return owners
+
+    assert asyncio.run(check()) <= {"a", "b"}

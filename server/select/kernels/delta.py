@@ -1,0 +1,226 @@
+"""A delta's bookkeeping in compiled passes (numba): Zach's morph marking, and the expansion of a schedule's
+level ranges into representations with the client-cache mirror's update.
+
+Each is a handful of numpy calls per level of a hierarchy, per range or per set
+operation (``np.unique``, ``union1d``, ``isin``, ``lexsort``) on a few thousand
+ids — calls that cost more than their arithmetic. Here each is one pass over the
+ids with a scratch flag per representation. ``morph.mark``, ``pipeline._expand``
+and ``mirror.CacheMirror.plan`` stay the references, and the tests compare.
+
+Pure functions of arrays (no clock, no I/O).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .jit import jit
+
+__all__ = ["mark", "plan", "union_ranges", "compile_all"]
+
+
+@jit()
+def mark(parent, black, new):
+    """``morph.mark``: (kind (s,) int8 — +1 up-morph, −1 down-morph, 0 none —, source (s,) int64)."""
+    m = parent.shape[0]
+    flags = np.zeros(m, np.uint8)  # 1 black, 2 grey (an ancestor of black)
+    for b in black:
+        flags[b] |= 1
+    for b in black:
+        p = parent[b]
+        while p >= 0 and not (flags[p] & 2):
+            flags[p] |= 2
+            p = parent[p]
+    s = new.shape[0]
+    kind = np.zeros(s, np.int8)
+    source = np.full(s, -1, np.int64)
+    for i in range(s):
+        r = new[i]
+        a = parent[r]
+        while a >= 0:
+            if flags[a] & 1:
+                source[i] = a
+                kind[i] = 1
+                break
+            a = parent[a]
+        if (flags[r] & 2) and not (flags[r] & 1):
+            kind[i] = -1
+    return kind, source
+
+
+@jit()
+def _stable_by(ids, values):
+    order = np.argsort(values, kind="mergesort")
+    return ids[order]
+
+
+@jit()
+def plan(selected, key, lo, hi, extra, rep_bytes, rep_level, rep_mix, budget, resident, sent, last_used, seq, resync,
+         held_bytes):
+    """``CacheMirror.plan`` with the schedule's level ranges expanded (``pipeline._expand``) on the way.
+
+    selected : reps the selection draws; key, lo, hi : (q,) each object key's lowest and highest level the
+    schedule draws (reps key + l for every whole l between); extra : further reps the delta needs
+    resident, sent, last_used : the mirror's arrays, updated in place; held_bytes : the bytes it holds now
+    Returns (new, drop, Δcount, Δbytes, Δdigest, evicted, over_budget).
+    """
+    m = resident.shape[0]
+    state = np.zeros(m, np.uint8)  # 1 needed, 2 selected, 4 kept
+    total = selected.shape[0] + extra.shape[0]
+    first = np.empty(key.shape[0], np.int64)
+    count = np.empty(key.shape[0], np.int64)
+    for i in range(key.shape[0]):
+        first[i] = np.int64(math.floor(lo[i] + 1e-9))
+        count[i] = max(np.int64(math.ceil(hi[i] - 1e-9)) - first[i] + 1, 1)
+        total += count[i]
+    touched = np.empty(total, np.int64)
+    t = 0
+    for r in selected:
+        if state[r] == 0:
+            touched[t] = r
+            t += 1
+        state[r] = 2
+    for i in range(key.shape[0]):
+        for c in range(count[i]):
+            r = key[i] + first[i] + c
+            if state[r] == 0:
+                touched[t] = r
+                t += 1
+                state[r] = 1
+    for r in extra:
+        if state[r] == 0:
+            touched[t] = r
+            t += 1
+            state[r] = 1
+    want = np.sort(touched[:t])
+    # The reference's lexsort((bytes, level, later)) over ids in order: stable sorts, last key last.
+    want = _stable_by(want, rep_bytes[want])
+    want = _stable_by(want, rep_level[want])
+    later = np.empty(t, np.int64)
+    for i in range(t):
+        later[i] = 1 if state[want[i]] == 1 else 0
+    want = _stable_by(want, later)
+    keep_n = t
+    sizes = 0
+    for i in range(t):
+        sizes += rep_bytes[want[i]]
+    if sizes > budget:
+        acc = 0
+        keep_n = 0
+        for i in range(t):
+            acc += rep_bytes[want[i]]
+            if acc > budget:
+                break
+            keep_n += 1
+    d_count, d_bytes, d_digest = 0, 0, np.uint64(0)
+    if resync:
+        for r in range(m):
+            if resident[r]:
+                resident[r] = False
+                d_count -= 1
+                d_bytes -= rep_bytes[r]
+                d_digest ^= rep_mix[r]
+    new = np.empty(keep_n, np.int64)
+    n_new = 0
+    for i in range(keep_n):
+        r = want[i]
+        state[r] |= 4
+        if not resident[r]:
+            new[n_new] = r
+            n_new += 1
+            resident[r] = True
+            sent[r] = True
+            d_count += 1
+            d_bytes += rep_bytes[r]
+            d_digest ^= rep_mix[r]
+    for i in range(t):
+        last_used[want[i]] = seq
+    drop = np.zeros(0, np.int64)
+    evicted = 0
+    held_bytes += d_bytes  # what the mirror holds after the adds, to compare with the budget
+    if held_bytes > budget:
+        n_cand = 0
+        for r in range(m):
+            if resident[r] and not (state[r] & 4):
+                n_cand += 1
+        cand = np.empty(n_cand, np.int64)
+        j = 0
+        for r in range(m):
+            if resident[r] and not (state[r] & 4):
+                cand[j] = r
+                j += 1
+        cand = _stable_by(cand, last_used[cand])
+        need = held_bytes - budget
+        freed = 0
+        n = 0
+        while n < n_cand:
+            freed += rep_bytes[cand[n]]
+            n += 1
+            if freed >= need:
+                break
+        drop = cand[:n].copy()
+        for r in drop:
+            resident[r] = False
+            d_count -= 1
+            d_bytes -= rep_bytes[r]
+            d_digest ^= rep_mix[r]
+        evicted = n
+    if resync:
+        n_drop = 0
+        for r in range(m):
+            if sent[r] and not resident[r]:
+                n_drop += 1
+        drop = np.empty(n_drop, np.int64)
+        j = 0
+        for r in range(m):
+            if sent[r] and not resident[r]:
+                drop[j] = r
+                j += 1
+    over = 0
+    for i in range(t):
+        if not resident[want[i]]:
+            over += 1
+    return new[:n_new].copy(), drop, d_count, d_bytes, d_digest, evicted, over
+
+
+@jit()
+def union_ranges(k1, lo1, hi1, k2, lo2, hi2):
+    """``MorphScheduler._union`` of two (key, lo, hi) tables, each sorted by key without repeats: per key the
+    widest range, by one merge."""
+    n1, n2 = k1.shape[0], k2.shape[0]
+    key = np.empty(n1 + n2, np.int64)
+    lo = np.empty(n1 + n2)
+    hi = np.empty(n1 + n2)
+    i = j = t = 0
+    while i < n1 or j < n2:
+        if j >= n2 or (i < n1 and k1[i] < k2[j]):
+            key[t], lo[t], hi[t] = k1[i], lo1[i], hi1[i]
+            i += 1
+        elif i >= n1 or k2[j] < k1[i]:
+            key[t], lo[t], hi[t] = k2[j], lo2[j], hi2[j]
+            j += 1
+        else:
+            key[t], lo[t], hi[t] = k1[i], min(lo1[i], lo2[j]), max(hi1[i], hi2[j])
+            i += 1
+            j += 1
+        t += 1
+    return key[:t].copy(), lo[:t].copy(), hi[:t].copy()
+
+
+def _frozen(a):
+    a.flags.writeable = False  # as the scene's shared tables are (``SceneTable``): their own specialisation
+    return a
+
+
+def compile_all() -> None:
+    """Call each kernel once with the argument types the session passes."""
+    parent = _frozen(np.array([-1, 0, 1, -1], np.int64))
+    mark(parent, np.array([1], np.int64), np.array([2, 0], np.int64))
+    m = 4
+    plan(np.array([1], np.int64), np.array([0], np.int64), np.array([0.0]), np.array([1.0]), np.zeros(0, np.int64),
+         _frozen(np.ones(m, np.int64)), _frozen(np.zeros(m, np.int64)), _frozen(np.arange(m, dtype=np.uint64)), 10,
+         np.zeros(m, np.bool_), np.zeros(m, np.bool_), np.full(m, -1, np.int64), 1, False, 0)
+    k, f = np.array([1, 3], np.int64), np.array([0.0, 1.0])
+    union_ranges(k, f, f, k, f, f)
