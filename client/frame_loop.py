@@ -378,7 +378,8 @@ def run_frames(
         gov = loop.governor
         if gov is not None:
             drew = (gov.down, gov.up, gov.units, gov.predicted)
-            gov.observe(stats.time)
+            keys = rows.key[here]
+            gov.observe(stats.time, stats.vertices, keys if stats.seen is None else keys[stats.seen])
         else:
             drew = (0, 0, 0.0, 0.0)
         loop.send(FrameReport(

@@ -46,6 +46,7 @@ class FramePlan:
     unmorphed : draws asked to morph (weight < 1) whose rep has no target: drawn as they are
     missing  : reps asked for that are not resident (skipped)
     culled   : resident reps outside the view frustum (skipped, counted in nothing else)
+    seen     : (s,) bool over the reps asked for: resident and inside the view frustum, hence drawn
     """
 
     slots: np.ndarray
@@ -58,6 +59,7 @@ class FramePlan:
     unmorphed: int = 0
     missing: int = 0
     culled: int = 0
+    seen: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.slots.size)
@@ -122,6 +124,7 @@ def plan_frame(
 
     slots = table.lookup(reps)
     here = slots >= 0
+    seen_mask = here.copy()
     n = int(np.count_nonzero(here))
     missing = s - n
     if n < s:
@@ -141,6 +144,7 @@ def plan_frame(
         seen = np.logical_and.reduce(d >= 0.0, axis=0)
         culled = n - int(np.count_nonzero(seen))
         if culled:
+            seen_mask[np.flatnonzero(here)[~seen]] = False
             slots = slots[seen]
             w = None if w is None else w[seen]
             alg = None if alg is None else alg[seen]
@@ -184,4 +188,4 @@ def plan_frame(
         tri_alg = np.bincount(alg, weights=faces, minlength=r).astype(np.int64)
         vert_alg = np.bincount(alg, weights=vertices, minlength=r).astype(np.int64)
     return FramePlan(slots, rows, commands, per_alg, tri_alg, vert_alg, morphs=morphs, unmorphed=unmorphed,
-                     missing=missing, culled=culled)
+                     missing=missing, culled=culled, seen=seen_mask)

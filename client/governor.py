@@ -72,7 +72,7 @@ class GovernorLadder:
     base: float
     lo: np.ndarray
     hi: np.ndarray
-    _offsets: dict = field(default_factory=dict, compare=False, repr=False)  # m → offsets(m), the last few
+    _offsets: dict = field(default_factory=dict, compare=False, repr=False)  # m → offsets(m), the last few; tables
 
     @classmethod
     def build(cls, t0: float, key: np.ndarray, step: np.ndarray, cost: np.ndarray, value: np.ndarray,
@@ -126,16 +126,54 @@ class GovernorLadder:
         if got is None:
             taken = np.bincount(self.step_key[self.rank < m], minlength=self.key.size)
             got = (taken - self.n_down).astype(np.float64)
-            if len(self._offsets) > 4:
-                self._offsets.clear()
+            if len(self._offsets) > 8:
+                for k in [k for k in self._offsets if isinstance(k, int)]:
+                    del self._offsets[k]
             self._offsets[m] = got
         return got
 
+    def _chains(self) -> tuple[int, np.ndarray]:
+        """(lowest pos, (n, P + 1) running units of each key's chain: column j holds its steps with
+        pos < lowest + j), made once per ladder."""
+        got = self._offsets.get("chains")
+        if got is None:
+            if self.pos.size:
+                low = int(self.pos.min())
+                grid = np.zeros((self.key.size, int(self.pos.max()) - low + 2))
+                np.add.at(grid, (self.step_key, self.pos - low + 1), self.cost)
+                got = (low, np.cumsum(grid, axis=1))
+            else:
+                got = (0, np.zeros((self.key.size, 1)))
+            self._offsets["chains"] = got
+        return got
+
+    def step_units(self, g: np.ndarray, vis: np.ndarray | None = None) -> float:
+        """Units the steps add above the all-coarse state when each key is drawn at offset ``g`` (n,) (−inf: not
+        drawn), counting only keys with ``vis`` (n,) set (None: all). A key partly down still draws its finer
+        level, so a step's increment counts while the drawn level (``ceil``) is at or above it."""
+        low, chains = self._chains()
+        drawn = np.ceil(np.maximum(g, low - 1.0) - 1e-9)
+        col = np.clip(drawn - low + 1, 0, chains.shape[1] - 1).astype(np.intp)
+        per_key = chains[np.arange(self.key.size), col]
+        return float(per_key.sum() if vis is None else per_key[vis].sum())
+
     def units(self, g: np.ndarray) -> float:
-        """Units (vertices) of drawing each key at offset ``g`` (n,) from the plan: a key partly down still draws
-        its finer level, so a step's increment counts while the drawn level (``ceil``) is at or above it."""
-        drawn = np.ceil(g - 1e-9)
-        return self.fixed + float(self.cost[self.pos <= drawn[self.step_key]].sum())
+        """Units (vertices) of drawing each key at offset ``g`` (n,) from the plan."""
+        return self.fixed + self.step_units(g)
+
+    def visible_cum(self, vis: np.ndarray) -> np.ndarray:
+        """(k + 1,) running units of the first m steps by value, counting only keys with ``vis`` (n,) set, made
+        non-decreasing for the search (a step that saves units never makes a longer prefix fit)."""
+        if vis.all():
+            got = self._offsets.get("cum")
+            if got is None:
+                got = self._offsets["cum"] = np.maximum.accumulate(self.cum)
+            return got
+        order = self._offsets.get("order")
+        if order is None:
+            order = self._offsets["order"] = np.argsort(self.rank)
+        c = np.concatenate([[0.0], np.cumsum(np.where(vis[self.step_key[order]], self.cost[order], 0.0))])
+        return np.maximum.accumulate(c)
 
     @property
     def plan_steps(self) -> int:
@@ -165,7 +203,7 @@ class Governor:
         # on a machine whose frames scatter, and to ``aim`` where they do not.
         self.tail = float(tail)
         self.ratios = np.full(int(window), np.nan)
-        self.seen = 0
+        self.measured = 0  # frames whose ratio was recorded
         self.pending: list[GovernorLadder] = []
         self.ladder: GovernorLadder | None = None
         self.m = 0
@@ -180,6 +218,14 @@ class Governor:
         self.lo = np.zeros(0)  # the levels their steps reach: a governed level stays within them, or within
         self.hi = np.zeros(0)  # where the schedule's own ramp has it
         self.t: float | None = None
+        # The last frame as the renderer counted it: its vertices anchor the prediction, so objects outside the
+        # view (which the ladder's units count) and objects without steps are priced as drawn, not as planned.
+        self.anchor: float | None = None
+        self.seen: np.ndarray | None = None  # sorted keys it drew inside the view (None: take all as seen)
+        self.last_key = np.zeros(0, np.int64)  # the schedule's keys the last ``apply`` returned levels for ...
+        self.last_level = np.zeros(0)  # ... and those levels
+        self.switched = False  # the last ``_switch`` took a new ladder
+        self._row_cache: tuple | None = None  # (ladder, schedule keys, rows of the ladder's keys in them)
 
     # ------------------------------------------------------------------ inputs
 
@@ -189,18 +235,22 @@ class Governor:
             self.pending = []
         self.pending = [p for p in self.pending if p.t0 < ladder.t0] + [ladder]
 
-    def observe(self, time: float) -> None:
-        """The measured time of the frame the last ``apply`` drew."""
-        if self.units > 0 and time > 0 and np.isfinite(time):
+    def observe(self, time: float, vertices: float | None = None, seen: np.ndarray | None = None) -> None:
+        """The measured time of the frame the last ``apply`` drew, with the ``vertices`` the renderer drew
+        (None: the ladder's count of them) and the object keys it drew inside the view (None: all)."""
+        drawn = self.units if vertices is None else float(vertices)
+        if self.units > 0 and drawn > 0 and time > 0 and np.isfinite(time) and np.isfinite(drawn):
             if self.predicted > 0:
-                self.ratios[self.seen % self.ratios.size] = float(time) / self.predicted
-                self.seen += 1
-            self.predictor.observe(float(time), self.units)
+                self.ratios[self.measured % self.ratios.size] = float(time) / self.predicted
+                self.measured += 1
+            self.predictor.observe(float(time), drawn)
+            self.anchor = drawn
+            self.seen = None if seen is None else np.unique(np.asarray(seen, np.int64))
 
     @property
     def steer(self) -> float:
         """The share of the target the predicted frame is steered to now."""
-        if self.seen < 8:
+        if self.measured < 8:
             return self.aim
         q = float(np.nanquantile(self.ratios, 0.95))
         return float(np.clip(self.tail / max(q, 1e-9), 0.5, self.aim))
@@ -226,24 +276,67 @@ class Governor:
             self.gkey, self.g, self.goal, self.speed, self.ladder = keys, g, goal, speed, lad
             self.lo, self.hi = lo, hi
             self.m = lad.plan_steps
+            self.switched = True
 
-    def _decide(self, lad: GovernorLadder) -> int:
+    def _decide(self, lad: GovernorLadder, cum: np.ndarray, rest: float) -> int:
         """The number of steps to take: shrink to the aim when the prediction for the state is above its band,
-        grow to it when below, else stay. The prediction is of the state the levels ramp to, at the rate the
-        drawn frames measured, so a decrement still ramping does not hold growth back: with hundreds of keys
-        one always is, and the frames stayed a fifth under the aim."""
+        grow to it when below, else stay. A state of m steps is predicted to draw ``rest + cum[m]`` units:
+        ``cum`` the visible running units of the steps, ``rest`` the last frame's drawn units less what its
+        steps added. The prediction is of the state the levels ramp to, at the rate the drawn frames measured,
+        so a decrement still ramping does not hold growth back: with hundreds of keys one always is, and the
+        frames stayed a fifth under the aim."""
         aim = self.steer * self.target
         fits = self.predictor.units_for(aim)  # units a frame at the aim may draw
-        if fits is None:
+        if fits is None or self.anchor is None:
             return self.m
-        cum, m = lad.cum, min(self.m, lad.cum.size - 1)
-        now = self.predictor.predict(lad.fixed + cum[m])
-        fit = int(max(np.searchsorted(cum, fits - lad.fixed, side="right") - 1, 0))
+        m = min(self.m, cum.size - 1)
+        now = self.predictor.predict(rest + cum[m])
+        fit = int(max(np.searchsorted(cum, fits - rest, side="right") - 1, 0))
         if now > (1.0 + self.slack) * aim:
             return fit
         if now < (1.0 - self.slack) * aim:
             return max(fit, m)
         return m
+
+    def _rows(self, key: np.ndarray, lad: GovernorLadder) -> np.ndarray:
+        """(n,) the row of ``key`` (the schedule's) holding each ladder key, −1 where none; kept while the
+        schedule's keys and the ladder stay the same (most frames)."""
+        c = self._row_cache
+        if c is not None and c[0] is lad and c[1].size == key.size and np.array_equal(c[1], key):
+            return c[2]
+        order = np.argsort(key, kind="stable")
+        k = key[order]
+        p = np.searchsorted(k, lad.key)
+        pc = np.minimum(p, max(k.size - 1, 0))
+        rows = np.where((p < k.size) & (k[pc] == lad.key), order[pc] if k.size else -1, -1) if k.size \
+            else np.full(lad.key.size, -1)
+        self._row_cache = (lad, key.copy(), rows)
+        return rows
+
+    def _last_offsets(self, lad: GovernorLadder, sel: np.ndarray, key: np.ndarray, rows: np.ndarray,
+                      li: np.ndarray, on: np.ndarray) -> np.ndarray:
+        """(n,) each ladder key's level in the last frame less its selected level (−inf: not drawn then)."""
+        g = np.full(lad.key.size, -np.inf)
+        bounded = np.isfinite(sel)
+        last_key, last_level = self.last_key, self.last_level
+        if last_key.size == key.size and np.array_equal(last_key, key):  # the same rows as the last frame
+            found = (rows >= 0) & bounded
+            g[found] = last_level[rows[found]] - sel[found]
+        elif last_key.size:
+            order = np.argsort(last_key, kind="stable")
+            k = last_key[order]
+            p = np.searchsorted(k, lad.key)
+            pc = np.minimum(p, k.size - 1)
+            found = (p < k.size) & (k[pc] == lad.key) & bounded
+            g[found] = last_level[order][pc[found]] - sel[found]
+        if not bounded.all():  # a ladder without levels: the offsets the governor kept are all it knows
+            free = np.zeros(lad.key.size, bool)
+            free[li[on]] = True
+            free &= ~bounded
+            g_gov = np.zeros(lad.key.size)
+            g_gov[li[on]] = self.g[on]
+            g[free] = g_gov[free]
+        return g
 
     def apply(self, t: float, key: np.ndarray, level: np.ndarray) -> np.ndarray:
         """(s,) the levels to draw at client time ``t`` for the schedule's ``key`` (s,) at ``level`` (s,)."""
@@ -255,7 +348,8 @@ class Governor:
         level = np.asarray(level, np.float64)
         if lad is None or self.gkey.size == 0:
             self.units, self.down, self.up = (lad.base if lad is not None else 0.0), 0, 0
-            self.predicted = self.predictor.predict(self.units) or 0.0
+            self.predicted = self.predictor.predict(self.anchor if self.anchor is not None else self.units) or 0.0
+            self._remember(key, level)
             return level
         # Target offset of every key with one: the state's for the ladder's keys, 0 for the rest.
         li = np.searchsorted(lad.key, self.gkey)
@@ -264,52 +358,105 @@ class Governor:
             on = (li < lad.key.size) & (lad.key[li_c] == self.gkey)
         else:  # an empty ladder: every key ramps back to the plan
             on, li_c = np.zeros(self.gkey.size, bool), np.zeros(self.gkey.size, np.int64)
-        self.m = self._decide(lad)
+        # The last frame in this ladder's terms: which keys it drew in view and at which levels.
+        sel = lad.lo + lad.n_down
+        rows = self._rows(key, lad)
+        g_last = self._last_offsets(lad, sel, key, rows, li, on)
+        vis = np.ones(lad.key.size, bool)
+        if self.seen is not None:
+            vis = np.isin(lad.key, self.seen, assume_unique=True) | ~np.isfinite(g_last)
+        cum = lad.visible_cum(vis)
+        rest = (self.anchor if self.anchor is not None else 0.0) - lad.step_units(g_last, vis)
+        self.m = self._decide(lad, cum, rest)
         # Until a frame is measured there is nothing to correct the plan with: it is drawn as it is.
         goal = np.zeros(self.g.size)
         if self.predictor.rate is not None and lad.key.size:
             goal = np.where(on, lad.offsets(self.m)[li_c], 0.0)
+        moved = goal != self.goal
+        if self.switched:
+            # A new plan starts where the last frame was: a key ramps from the level it was drawn at to its goal,
+            # so a heavier plan is reached at the governor's pace, never at once, and nothing pops either way.
+            self.switched = False
+            here = self._level_of(key, level, self.gkey)
+            last = np.full(self.gkey.size, -np.inf)
+            last[on] = g_last[li_c[on]] + sel[li_c[on]]
+            drew = on & np.isfinite(last) & np.isfinite(here)
+            start = np.where(drew, last - here, np.minimum(goal, 0.0))
+            self.g = np.where(on, start, self.g)
+            moved |= on
         # A new goal starts a ramp of ``ramp`` seconds: two levels or more go as a chain of adjacent morphs at
         # twice the speed (Zach's chains), so a shrink that first undoes a step up is drawn within one ramp —
         # never faster, so a level moves at most two levels per ramp.
-        moved = goal != self.goal
         self.speed = np.where(moved, np.clip(np.abs(goal - self.g), 1.0, 2.0) / self.ramp, self.speed)
         self.goal = goal
         step = dt * self.speed
         self.g = self.g + np.clip(goal - self.g, -step, step)
         near = np.abs(self.g - goal) < 1e-9
         self.g[near] = goal[near]
-        # What is drawn: a key partly down still draws its finer level, partly up the finer one.
-        g_lad = np.zeros(lad.key.size)
-        g_lad[li[on]] = self.g[on]
-        self.units = lad.units(g_lad)
-        self.down = int((self.g < -1e-9).sum())
-        self.up = int((self.g > 1e-9).sum())
-        self.predicted = self.predictor.predict(self.units) or 0.0
         settled = self.g == 0
         if settled.any() and not on[settled].all():  # forget keys that left the ladder and came back to plan
             drop = settled & ~on
             self.gkey, self.g, self.goal, self.speed, self.lo, self.hi = (
                 a[~drop] for a in (self.gkey, self.g, self.goal, self.speed, self.lo, self.hi))
-        pos = np.searchsorted(self.gkey, key)
-        pos_c = np.minimum(pos, max(self.gkey.size - 1, 0))
-        if not self.gkey.size:
-            return level
-        hit = (pos < self.gkey.size) & (self.gkey[pos_c] == key)
-        # Within the levels the steps reach (resident, with their morph targets), or the schedule's own level
-        # where its ramp lies outside them: a bound that moves with the level, so nothing jumps.
-        lo = np.minimum(level, np.where(hit, self.lo[pos_c], -np.inf))
-        hi = np.maximum(level, np.where(hit, self.hi[pos_c], np.inf))
-        drawn = np.maximum(np.clip(level + np.where(hit, self.g[pos_c], 0.0), lo, hi), 0.0)
-        # The offset is what was drawn, not what the bound cut off: a bound that widens later (a new ladder
-        # reaching a level further down) then starts a ramp from here instead of showing the rest at once.
-        self.g[pos_c[hit]] = drawn[hit] - level[hit]
+            li, on = li[~drop], on[~drop]
+        drawn = level
+        if self.gkey.size:
+            pos = np.searchsorted(self.gkey, key)
+            pos_c = np.minimum(pos, self.gkey.size - 1)
+            hit = (pos < self.gkey.size) & (self.gkey[pos_c] == key)
+            # Within the levels the steps reach (resident, with their morph targets), or the schedule's own level
+            # where its ramp lies outside them: a bound that moves with the level, so nothing jumps.
+            lo = np.minimum(level, np.where(hit, self.lo[pos_c], -np.inf))
+            hi = np.maximum(level, np.where(hit, self.hi[pos_c], np.inf))
+            drawn = np.maximum(np.clip(level + np.where(hit, self.g[pos_c], 0.0), lo, hi), 0.0)
+            # The offset is what was drawn, not what the bound cut off: a bound that widens later (a new ladder
+            # reaching a level further down) then starts a ramp from here instead of showing the rest at once.
+            self.g[pos_c[hit]] = drawn[hit] - level[hit]
+        # What is drawn, in the ladder's units: a key partly down still draws its finer level, partly up the finer.
+        g_lad = np.zeros(lad.key.size)
+        g_lad[li[on]] = self.g[on]
+        self.units = lad.units(g_lad)
+        self.down = int((self.g < -1e-9).sum())
+        self.up = int((self.g > 1e-9).sum())
+        g_now = np.where(rows >= 0, drawn[np.maximum(rows, 0)] - sel, -np.inf) if drawn.size else np.full(rows.size, -np.inf)
+        g_now = np.where(np.isfinite(g_now), g_now, np.where(np.isfinite(sel), -np.inf, g_lad))
+        self.predicted = (self.predictor.predict(rest + lad.step_units(g_now, vis)) or 0.0) \
+            if self.anchor is not None else (self.predictor.predict(self.units) or 0.0)
+        self._remember(key, drawn)
         return drawn
+
+    def _remember(self, key: np.ndarray, drawn: np.ndarray) -> None:
+        self.last_key, self.last_level = key.copy(), np.asarray(drawn, np.float64).copy()
+
+    @staticmethod
+    def _level_of(key: np.ndarray, level: np.ndarray, want: np.ndarray) -> np.ndarray:
+        """(w,) the level the rows ``key``/``level`` give each of ``want`` (w,), NaN where it has no row."""
+        out = np.full(want.size, np.nan)
+        if not key.size or not want.size:
+            return out
+        order = np.argsort(key, kind="stable")
+        k = key[order]
+        p = np.searchsorted(k, want)
+        pc = np.minimum(p, k.size - 1)
+        found = (p < k.size) & (k[pc] == want)
+        out[found] = level[order][pc[found]]
+        return out
 
     def hold(self, key: np.ndarray, offset: np.ndarray) -> None:
         """The rows of ``key`` were drawn at ``offset`` from the plan instead (what the caller could draw):
-        their ramps go on from there."""
-        pos = np.searchsorted(self.gkey, np.asarray(key, np.int64))
+        their ramps go on from there, and the last frame's levels say so."""
+        key = np.asarray(key, np.int64)
+        offset = np.asarray(offset, np.float64)
+        pos = np.searchsorted(self.gkey, key)
         pos_c = np.minimum(pos, max(self.gkey.size - 1, 0))
         hit = (pos < self.gkey.size) & (self.gkey[pos_c] == key) if self.gkey.size else np.zeros(pos.size, bool)
-        self.g[pos_c[hit]] = np.asarray(offset, np.float64)[hit]
+        moved = np.zeros(key.size)
+        moved[hit] = offset[hit] - self.g[pos_c[hit]]
+        self.g[pos_c[hit]] = offset[hit]
+        if self.last_key.size:
+            order = np.argsort(self.last_key, kind="stable")
+            k = self.last_key[order]
+            p = np.searchsorted(k, key)
+            pc = np.minimum(p, k.size - 1)
+            found = (p < k.size) & (k[pc] == key)
+            self.last_level[order[pc[found]]] += moved[found]

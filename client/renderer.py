@@ -110,7 +110,8 @@ class FrameStats:
     is what grows with the number of drawn representations. ``culled``: reps
     asked for but outside the view frustum, not drawn (nor counted in the
     other figures: the cost model is fitted to what was drawn). ``splats``: what
-    the layers drew. ``terms``: the same work split by rendering algorithm.
+    the layers drew. ``terms``: the same work split by rendering algorithm. ``seen``: which of the reps
+    asked for were drawn.
     """
 
     time: float
@@ -125,6 +126,7 @@ class FrameStats:
     terms: FrameTerms | None = None
     prepare_time: float = 0.0
     culled: int = 0
+    seen: np.ndarray | None = None  # (s,) bool over the reps asked for: the ones drawn (resident, in view)
 
 
 class Layer(Protocol):
@@ -503,6 +505,7 @@ class Renderer:
             culled=plan.culled,
             splats=splats,
             terms=terms,
+            seen=plan.seen,
         )
 
     @staticmethod

@@ -58,6 +58,7 @@ class Pipeline:
         self.memory = Memory()
         self.morph = MorphScheduler(config.tau, morph=False)
         self.ramp = MorphScheduler(config.tau, morph=False)
+        self.maps = False  # send collapse maps with the adds (the client morphs or governs)
         self.prev_rep = np.zeros(0, np.int64)  # the rep each object drew last delta, −1 none
         self.drawn = np.zeros(0, np.int64)
         self.pixel_scale = 1.0  # covered pixels per pixel of box screen area, measured
@@ -93,6 +94,9 @@ class Pipeline:
         self.memory = Memory()
         self.morph = MorphScheduler(self.config.tau, morph=hello.morph)
         self.ramp = MorphScheduler(self.config.tau, morph=hello.morph)
+        # The governor ramps between adjacent levels by their collapse maps, so it needs them as much as the
+        # morph schedule does.
+        self.maps = bool(hello.morph or hello.governor)
         self.prev_rep = np.full(table.n_objects, -1, np.int64)
         self.drawn = np.zeros(0, np.int64)
         self.ladder_to = np.zeros(0, np.int64)
@@ -263,7 +267,7 @@ class Pipeline:
         models with the session's first tree group, and the payload bytes of both — as the scene's shared
         cache holds them (``payloads``: read and packed once for every session)."""
         payloads = Payloads.of(self.store)
-        add = payloads.adds(new.tolist(), self.morph.morph) if new.size else []
+        add = payloads.adds(new.tolist(), self.maps) if new.size else []
         models: list[ModelAdd] = []
         if new.size and self.table.rep_trees[new].any() and not mirror.models_sent:
             mirror.models_sent = True  # the groups' instances name these: sent once, kept
