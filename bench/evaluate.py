@@ -8,7 +8,7 @@ both without and with the client's frame governor (``hello.governor``). Every ru
 is repeated ``repeats`` times, interleaved (A B C A B C …), so that a slow stretch
 of the machine hits every method alike; server and client run on different cores
 and a calibration workload is timed every second beside each run
-(``bench.machine``). All runs offer the client one rendering algorithm
+(``bench.machine``; on the server's core, not the client's). All runs offer the client one rendering algorithm
 (``ALGORITHMS``, "lit" by default), so every method draws with the same shading
 rule and differs only in the levels it picks. Each run keeps every
 frame's measured time, the server's selection time, triangles, drawn
@@ -272,6 +272,7 @@ def run_one(
     max_fps: float | None = MAX_FPS,
     algorithms: Sequence[str] = ALGORITHMS,
     calibrate: bool = True,
+    calibration_cores: Sequence[int] | None = None,
 ) -> tuple[dict, list]:
     """One fresh session of ``spec`` over the tour (the server's, or ``tour``); returns (run dict, traces).
 
@@ -289,7 +290,7 @@ def run_one(
     if not duration > 0:
         raise ValueError(f"duration must be positive, got {duration!r}")
     m = spec.method
-    with (Calibration() if calibrate else contextlib.nullcontext()) as calib:
+    with (Calibration(cores=calibration_cores) if calibrate else contextlib.nullcontext()) as calib:
         run = run_client(
             server_url, scene, duration=duration, viewport=tuple(viewport), fov_y=fov_y,
             target_frame_time=spec.target_ms / 1e3, solver=m.solver, predict=m.predict, morph=m.morph, trace=True,
@@ -414,7 +415,8 @@ def evaluate(
             try:
                 for i, spec in enumerate(specs):
                     run, traces = run_one(server.url, scene, spec, duration=duration, viewport=viewport,
-                                          fov_y=fov_y, warmup=warmup, max_fps=max_fps, algorithms=algorithms)
+                                          fov_y=fov_y, warmup=warmup, max_fps=max_fps, algorithms=algorithms,
+                                          calibration_cores=results["cores"].get("server"))
                     results["runs"].append(run)
                     _spill(results, spec, traces, i, spill, spilled, near, at_views, quality, target_ms)
                     del traces

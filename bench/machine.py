@@ -64,21 +64,30 @@ def calibration_workload(rng_seed: int = 0) -> float:
 
 
 class Calibration:
-    """A daemon thread timing ``calibration_workload`` every ``period`` s while a run lasts (a context manager).
+    """A daemon thread timing ``calibration_workload`` every ``period`` s while a run lasts (a context manager),
+    on ``cores`` when given (None: wherever the calling thread may run).
 
     ``samples()`` gives {"t": [s since start], "ms": [workload time]}.
     """
 
-    def __init__(self, period: float = 1.0) -> None:
+    def __init__(self, period: float = 1.0, cores: "list[int] | None" = None) -> None:
         if not period > 0:
             raise ValueError(f"period must be positive, got {period!r}")
         self.period = float(period)
+        self.cores = None if not cores else [int(c) for c in cores]
         self._t: list[float] = []
         self._ms: list[float] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="calibration", daemon=True)
 
     def _loop(self) -> None:
+        if self.cores is not None and hasattr(os, "sched_setaffinity"):
+            # Beside the server, not the client: on the client's core the workload would take its frames'
+            # time and measure their contention instead of the machine.
+            try:
+                os.sched_setaffinity(0, self.cores)
+            except OSError:
+                pass
         start = time.perf_counter()
         while True:
             at = time.perf_counter() - start

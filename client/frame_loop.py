@@ -69,6 +69,7 @@ class FrameLoop:
         self.failing = False  # a send failed: the receiver is ending, its Closed is on the way
         self.governor: Governor | None = None  # corrects the selection every frame along each delta's ladder
         self.governor_refused = 0  # rows the governor moved to what cannot be drawn, drawn as planned instead
+        self._last_rows: tuple | None = None  # (keys, reps) the last frame's rows drew
 
     def send(self, msg) -> None:
         """Send on the current connection; a failure shuts it down so its receiver reports the loss."""
@@ -235,6 +236,20 @@ class FrameLoop:
         self.governor.take(GovernorLadder.build(delta.t0, key, to - rep, cost, value, delta.ladder_base, levels),
                            reset=delta.reset or delta.start is None)
 
+    def _expect(self, d: Drawn, view: tuple) -> None:
+        """Tell the governor what the last frame's levels draw from the camera about to draw."""
+        rep = d.rep
+        last = self._last_rows
+        if last is not None and last[0].size and d.key.size:
+            order = np.argsort(last[0], kind="stable")
+            k = last[0][order]
+            p = np.searchsorted(k, d.key)
+            pc = np.minimum(p, k.size - 1)
+            found = (p < k.size) & (k[pc] == d.key)
+            rep = np.where(found, last[1][order][pc], d.rep)
+        seen, vertices = self.renderer.in_view(rep, *view)
+        self.governor.expect(float(vertices[seen].sum()), d.key[seen])
+
     def governed(self, t: float, d: Drawn) -> Drawn:
         """The schedule's rows with the governor's levels, where what they draw is resident (else as planned)."""
         gov = self.governor
@@ -267,10 +282,15 @@ class FrameLoop:
             gov.hold(d.key[~ok], np.zeros(self.governor_refused))
         return Drawn(d.key, np.where(ok, level, d.level), np.where(ok, rep, d.rep), np.where(ok, weight, d.weight))
 
-    def drawn(self, t: float):
-        """Representations, morph weights and the full schedule rows to draw at client time t."""
+    def drawn(self, t: float, view: tuple | None = None):
+        """Representations, morph weights and the full schedule rows to draw at client time t (``view``: the
+        camera about to draw, (eye, forward, up, near, far), for the governor's prediction)."""
         self.schedule.advance(t)
-        d = self.governed(t, self.schedule.at(t))
+        d = self.schedule.at(t)
+        if view is not None and self.governor is not None:
+            self._expect(d, view)
+        d = self.governed(t, d)
+        self._last_rows = (d.key, d.rep)
         here = self.cache.holds(d.rep)
         self.run.skipped += int((~here).sum())
         return d, d.rep[here], d.weight[here]
@@ -366,12 +386,13 @@ def run_frames(
         # While the link is down, sends are skipped and frames go on from what is resident.
         loop.send(Camera(t=t, eye=eye.tolist(), forward=forward.tolist(), up=up.tolist()))
         loop.pump(None)
-        rows, reps, weights = loop.drawn(t)
+        far = far_plane(eye, bounds)
+        rows, reps, weights = loop.drawn(t, (eye, forward, up, NEAR, far))
         here = cache.holds(rows.rep)
         loop.vegetation_at(t)
         layers = (loop.splats,) if loop.splats is not None else ()
         drawn_algorithms = loop.algorithms(rows.key[here], t)
-        stats = renderer.draw(reps, eye, forward, up, NEAR, far_plane(eye, bounds), weights=weights,
+        stats = renderer.draw(reps, eye, forward, up, NEAR, far, weights=weights,
                               algorithms=drawn_algorithms, levels=rows.level[here],
                               layers=layers)
         terms = stats.terms

@@ -25,7 +25,7 @@ from proto.messages import ALGORITHMS
 
 from .slots import SlotTable
 
-__all__ = ["DRAW", "FLAG_MORPH", "FramePlan", "plan_frame"]
+__all__ = ["DRAW", "FLAG_MORPH", "FramePlan", "in_frustum", "plan_frame"]
 
 #: Per-draw row (instanced attribute, divisor 1): weight, continuous level, tint (RGBA8 packed little-endian), flags.
 DRAW = np.dtype([("weight", "<f4"), ("level", "<f4"), ("tint", "<u4"), ("flags", "<u4")])
@@ -85,6 +85,20 @@ def _frustum_planes(view_projection: np.ndarray) -> np.ndarray:
     return planes
 
 
+def in_frustum(table: SlotTable, slots: np.ndarray, view_projection: np.ndarray, eye: np.ndarray) -> np.ndarray:
+    """(n,) bool: whether each resident slot's bounding sphere reaches into the view frustum.
+
+    One (6, 4) @ (4, n) product gives each centre's signed distance to each plane plus its radius. Planes as
+    rows, so the test reduces over contiguous rows: a reduction along the short axis of an (n, 6) array is
+    several times slower, and this is most of preparing a frame of many reps.
+    """
+    planes = _frustum_planes(view_projection)
+    m = np.hstack([planes[:, :3], np.ones((6, 1))]).astype(np.float32)
+    d = m @ table.sphere[slots].T
+    d += (planes[:, 3] - planes[:, :3] @ eye)[:, None]
+    return np.logical_and.reduce(d >= 0.0, axis=0)
+
+
 def plan_frame(
     reps: np.ndarray,
     table: SlotTable,
@@ -134,14 +148,7 @@ def plan_frame(
         lev = None if lev is None else lev[here]
     culled = 0
     if cull and n:
-        # One (6, 4) @ (4, s) product gives each centre's signed distance to each plane plus its radius.
-        # Planes as rows, so the test reduces over contiguous rows: a reduction along the short axis of an
-        # (s, 6) array is several times slower, and this is most of preparing a frame of many reps.
-        planes = _frustum_planes(view_projection)
-        m = np.hstack([planes[:, :3], np.ones((6, 1))]).astype(np.float32)
-        d = m @ table.sphere[slots].T
-        d += (planes[:, 3] - planes[:, :3] @ eye)[:, None]
-        seen = np.logical_and.reduce(d >= 0.0, axis=0)
+        seen = in_frustum(table, slots, view_projection, eye)
         culled = n - int(np.count_nonzero(seen))
         if culled:
             seen_mask[np.flatnonzero(here)[~seen]] = False

@@ -192,18 +192,20 @@ class Governor:
     """
 
     def __init__(self, target: float, ramp: float = RAMP, aim: float = 0.97, slack: float = 0.03,
-                 tail: float = 1.05, window: int = 32) -> None:
+                 tail: float = 1.1, quantile: float = 0.99, window: int = 128) -> None:
         if not (target > 0 and 0 < ramp <= 0.25 and 0 < aim <= 1 and 0 <= slack < 1 and aim * (1 + slack) <= 1
-                and 1.0 <= tail <= 1.5 and window >= 8):
+                and 1.0 <= tail <= 1.5 and 0.5 <= quantile < 1 and window >= 8):
             raise ValueError(f"bad governor settings target={target} ramp={ramp} aim={aim} slack={slack} "
-                             f"tail={tail} window={window}")
+                             f"tail={tail} quantile={quantile} window={window}")
         self.target, self.ramp, self.aim, self.slack = float(target), float(ramp), float(aim), float(slack)
         # The aim follows the predictor's measured error: measured ÷ predicted time of the last ``window``
-        # frames; steering to tail ÷ their 95th percentile keeps the 95th-percentile frame near tail × target
-        # on a machine whose frames scatter, and to ``aim`` where they do not.
-        self.tail = float(tail)
+        # frames; steering to tail ÷ their ``quantile`` keeps that share of frames within tail × target on a
+        # machine whose frames scatter (the promise: at most 1 % over 1.1 ×), and to ``aim`` where they do not.
+        # Where the scatter is wide this gives up mean frame time for the tail, never the other way round.
+        self.tail, self.quantile = float(tail), float(quantile)
         self.ratios = np.full(int(window), np.nan)
         self.measured = 0  # frames whose ratio was recorded
+        self._steer: float | None = None  # ``steer`` as of the last ratio recorded
         self.pending: list[GovernorLadder] = []
         self.ladder: GovernorLadder | None = None
         self.m = 0
@@ -225,6 +227,8 @@ class Governor:
         self.last_key = np.zeros(0, np.int64)  # the schedule's keys the last ``apply`` returned levels for ...
         self.last_level = np.zeros(0)  # ... and those levels
         self.switched = False  # the last ``_switch`` took a new ladder
+        self.expected = False  # the anchor is the frame about to be drawn (``expect``), not the last one
+        self._lookups: dict = {}  # ``_memo``'s lookups
         self._row_cache: tuple | None = None  # (ladder, schedule keys, rows of the ladder's keys in them)
 
     # ------------------------------------------------------------------ inputs
@@ -235,6 +239,16 @@ class Governor:
             self.pending = []
         self.pending = [p for p in self.pending if p.t0 < ladder.t0] + [ladder]
 
+    def expect(self, vertices: float, seen: np.ndarray) -> None:
+        """Before a frame: the ``vertices`` the last frame's levels draw from the camera about to draw (a key
+        new in the view at its planned level), and the keys ``seen`` in its view. The prediction then starts
+        from the frame about to be drawn, not the one before: objects entering or leaving the view as the
+        camera moves are most of what a frame changes by."""
+        if self.anchor is not None and vertices > 0 and np.isfinite(vertices):
+            self.anchor = float(vertices)
+            self.seen = np.unique(np.asarray(seen, np.int64))
+            self.expected = True
+
     def observe(self, time: float, vertices: float | None = None, seen: np.ndarray | None = None) -> None:
         """The measured time of the frame the last ``apply`` drew, with the ``vertices`` the renderer drew
         (None: the ladder's count of them) and the object keys it drew inside the view (None: all)."""
@@ -243,17 +257,21 @@ class Governor:
             if self.predicted > 0:
                 self.ratios[self.measured % self.ratios.size] = float(time) / self.predicted
                 self.measured += 1
+                self._steer = None
             self.predictor.observe(float(time), drawn)
             self.anchor = drawn
             self.seen = None if seen is None else np.unique(np.asarray(seen, np.int64))
+            self.expected = False
 
     @property
     def steer(self) -> float:
-        """The share of the target the predicted frame is steered to now."""
+        """The share of the target the predicted frame is steered to now (updated as frames are measured)."""
         if self.measured < 8:
             return self.aim
-        q = float(np.nanquantile(self.ratios, 0.95))
-        return float(np.clip(self.tail / max(q, 1e-9), 0.5, self.aim))
+        if self._steer is None:
+            q = float(np.nanquantile(self.ratios, self.quantile))
+            self._steer = float(np.clip(self.tail / max(q, 1e-9), 0.5, self.aim))
+        return self._steer
 
     # ------------------------------------------------------------------ per frame
 
@@ -316,7 +334,8 @@ class Governor:
     def _last_offsets(self, lad: GovernorLadder, sel: np.ndarray, key: np.ndarray, rows: np.ndarray,
                       li: np.ndarray, on: np.ndarray) -> np.ndarray:
         """(n,) each ladder key's level in the last frame less its selected level (−inf: not drawn then)."""
-        g = np.full(lad.key.size, -np.inf)
+        # A key the last frame did not draw: nothing of it in the anchor, or (``expect``) its planned level.
+        g = np.full(lad.key.size, 0.0 if self.expected else -np.inf)
         bounded = np.isfinite(sel)
         last_key, last_level = self.last_key, self.last_level
         if last_key.size == key.size and np.array_equal(last_key, key):  # the same rows as the last frame
@@ -352,7 +371,8 @@ class Governor:
             self._remember(key, level)
             return level
         # Target offset of every key with one: the state's for the ladder's keys, 0 for the rest.
-        li = np.searchsorted(lad.key, self.gkey)
+        li = self._memo(("li", id(lad), id(self.gkey)), lambda: np.searchsorted(lad.key, self.gkey),
+                        refs=(lad, self.gkey))
         li_c = np.minimum(li, max(lad.key.size - 1, 0))
         if lad.key.size:
             on = (li < lad.key.size) & (lad.key[li_c] == self.gkey)
@@ -401,7 +421,8 @@ class Governor:
             li, on = li[~drop], on[~drop]
         drawn = level
         if self.gkey.size:
-            pos = np.searchsorted(self.gkey, key)
+            pos = self._memo(("pos", id(self.gkey)), lambda: np.searchsorted(self.gkey, key), key,
+                             refs=(self.gkey,))
             pos_c = np.minimum(pos, self.gkey.size - 1)
             hit = (pos < self.gkey.size) & (self.gkey[pos_c] == key)
             # Within the levels the steps reach (resident, with their morph targets), or the schedule's own level
@@ -424,6 +445,19 @@ class Governor:
             if self.anchor is not None else (self.predictor.predict(self.units) or 0.0)
         self._remember(key, drawn)
         return drawn
+
+    def _memo(self, name: tuple, make, key: np.ndarray | None = None, refs: tuple = ()) -> np.ndarray:
+        """A lookup between key arrays, kept while the arrays stay the same (most frames): by identity for the
+        governor's own arrays (replaced, never changed in place; ``refs`` keeps them alive while cached, so
+        their ids are not reused), by value for the caller's ``key``."""
+        got = self._lookups.get(name)
+        if got is not None and (key is None or (got[0].size == key.size and np.array_equal(got[0], key))):
+            return got[1]
+        value = make()
+        if len(self._lookups) > 8:
+            self._lookups.clear()
+        self._lookups[name] = (None if key is None else key.copy(), value, refs)
+        return value
 
     def _remember(self, key: np.ndarray, drawn: np.ndarray) -> None:
         self.last_key, self.last_level = key.copy(), np.asarray(drawn, np.float64).copy()

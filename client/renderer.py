@@ -55,7 +55,7 @@ from proto.geometry import Geometry
 from proto.messages import ALGORITHMS
 
 from .arena import Arena, Relocation
-from .frame_plan import DRAW, plan_frame
+from .frame_plan import DRAW, in_frustum, plan_frame
 from .shading import VERTEX, key_light, pack_normals, packed_tint, target_normals, vertex_records
 from .slots import SlotTable
 
@@ -398,6 +398,23 @@ class Renderer:
         self._vaos_stale = False
 
     # ----------------------------------------------------------------- drawing
+
+    def in_view(self, reps: np.ndarray, eye, forward, up, near: float, far: float) -> tuple[np.ndarray, np.ndarray]:
+        """For a camera about to draw: (s,) bool, which of ``reps`` are resident and in its view (as ``draw``
+        culls them), and (s,) int64, the vertices of each resident one (0 where not resident)."""
+        reps = np.asarray(reps, np.int64).ravel()
+        slots = self._slots.lookup(reps)
+        here = slots >= 0
+        seen = here.copy()
+        vertices = np.zeros(reps.size, np.int64)
+        if here.any():
+            eye = np.asarray(eye, np.float64)
+            vp = projection_matrix(self.fov_y, self.width / self.height, near, far) @ view_matrix(
+                np.zeros(3), np.asarray(forward, np.float64), np.asarray(up, np.float64))
+            if self.cull:
+                seen[here] = in_frustum(self._slots, slots[here], vp, eye)
+            vertices[here] = self._slots.vertices[slots[here]]
+        return seen, vertices
 
     def draw(
         self,

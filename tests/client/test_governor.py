@@ -186,8 +186,8 @@ def test_a_bound_that_widens_starts_a_ramp_instead_of_a_jump():
 
 
 def test_on_a_machine_whose_frames_scatter_the_tail_holds_and_the_budget_is_spent():
-    """Frames that scatter by 10 % around the exact cost: the aim follows the measured scatter, so the 95th
-    percentile frame stays within 1.1 × target while the mean still uses most of the time asked for."""
+    """Frames that scatter by 10 % around the exact cost: the aim follows the measured scatter, so the 99th
+    percentile frame stays near 1.1 × target while the mean still uses most of the time asked for."""
     world = World(400, seed=5, overhead=0.002)
     rng = np.random.default_rng(9)
     noise = rng.lognormal(0.0, 0.10, 600)
@@ -195,7 +195,8 @@ def test_on_a_machine_whose_frames_scatter_the_tail_holds_and_the_budget_is_spen
     gov = Governor(TARGET)
     gov.take(world.ladder())
     spent = np.array([s for _, s, _ in frames(world, gov, lambda i: scale * noise[i], 600)])[100:]
-    assert np.quantile(spent, 0.95) <= 1.10 * TARGET
+    assert np.quantile(spent, 0.99) <= 1.12 * TARGET
+    assert np.mean(spent > 1.1 * TARGET) <= 0.02
     assert spent.mean() >= 0.80 * TARGET
     # Without scatter the aim stays at its ceiling: no time is given away where frames do not scatter.
     quiet = Governor(TARGET)
