@@ -129,3 +129,11 @@ def test_culling_is_relative_to_the_eye() -> None:
     table = _table({5: ((100.0, 0.0, -5.0), 1, 3, False)})
     assert plan_frame(np.array([5]), table, VP, np.array([100.0, 0.0, 0.0])).culled == 0
     assert plan_frame(np.array([5]), table, VP, EYE).culled == 1
+
+
+def test_seen_marks_the_reps_asked_for_that_were_drawn() -> None:
+    table = _table(MESHES)
+    reps = np.array([9, 1, 3, 2, -3, 4])  # 9 is not resident; 3 and 4 are out of view
+    plan = plan_frame(reps, table, VP, EYE)
+    assert plan.seen.tolist() == [False, True, False, True, True, False]
+    assert int(plan.seen.sum()) == len(plan) == reps.size - plan.missing - plan.culled

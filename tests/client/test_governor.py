@@ -282,3 +282,55 @@ def test_a_ladder_keeps_only_contiguous_chains_and_orders_each_chain_coarse_firs
     assert lad.offsets(0).tolist() == [-2.0, 0.0, 0.0] and lad.offsets(lad.pos.size).tolist() == [0.0, 1.0, 1.0]
     assert lad.units(np.array([-2.0, 0.0, 0.0])) == pytest.approx(lad.fixed)
     assert lad.units(np.array([-0.5, 0.0, 0.0])) == pytest.approx(lad.base)  # a key partly down draws its level
+
+
+def test_a_new_plan_starts_where_the_last_frame_was():
+    """On a slow machine the governor draws everything a level down; a new plan two levels finer then starts
+    from the drawn levels and ramps, instead of drawing three levels finer in one frame."""
+    world = World(200, 21)
+    finer = World(200, 21)
+    finer.level = world.level + 2.0
+    gov = Governor(TARGET, ramp=0.1)
+    gov.take(world.ladder())
+    gov.take(finer.ladder(t0=1.0))
+    slow = 3.0 * TARGET / world.model_seconds(world.level - 1)  # even all coarse is over the target
+    prev = None
+    for i in range(40):
+        t = i * DT
+        w = world if t < 1.0 else finer
+        level = gov.apply(t, w.key, w.level)
+        if t < 1.0 and t > 0.5:
+            assert np.all(level == world.level - world.has_down)  # shed as far as the ladder reaches
+        if prev is not None:
+            assert np.all(np.abs(level - prev) <= 2 * DT / gov.ramp + 1e-9), np.abs(level - prev).max()
+        prev = level
+        gov.observe(slow * world.model_seconds(np.minimum(level, world.level + 1)))
+
+
+def test_objects_outside_the_view_are_not_shed_for_time_they_do_not_take():
+    """Half the ladder's objects are outside the view: the frame costs only the visible ones. With the drawn
+    vertices and the keys seen, the governor holds the target and spends it, rather than shedding unseen
+    objects that save nothing."""
+    world = World(400, 13, overhead=0.002)
+    seen = world.key[::2]
+    vis = np.zeros(world.key.size, bool)
+    vis[::2] = True
+    world.value_down[~vis] *= 1e-3  # the unseen objects' steps down come first by value
+
+    def visible_units(level):
+        drawn = np.ceil(level - 1e-9)
+        c = np.where(drawn < 2, world.cost - world.down, np.where(drawn > 2, world.cost + world.up, world.cost))
+        return world.overhead + float(c[vis].sum())
+
+    rate = 1.3 * TARGET / visible_units(world.level)  # the visible plan is 1.3 × the target
+    gov = Governor(TARGET, ramp=0.1)
+    gov.take(world.ladder())
+    spent = []
+    for i in range(60):
+        level = gov.apply(i * DT, world.key, world.level)
+        units = visible_units(level)
+        spent.append(rate * units)
+        gov.observe(rate * units, units, seen)
+    spent = np.array(spent[4:])  # one frame to learn the machine, one ramp (two frames) to get there
+    assert np.all(spent <= TARGET * (1 + 1e-9)), spent.max() / TARGET
+    assert spent[-10:].mean() >= 0.85 * TARGET

@@ -613,6 +613,10 @@ def test_frustum_culling_leaves_out_unseen_reps_without_changing_the_image() -> 
         # Looking along one axis from the middle of a cube of spheres, most of them are out of view.
         assert culled.culled > n // 2 and culled.draws == n - culled.culled
         assert culled.triangles == 80 * culled.draws and culled.pixels == everything.pixels
+        # The governor's look ahead sees what the draw will: the same reps in view, the same vertices.
+        seen, vertices = r.in_view(reps, eye, FORWARD, UP, 0.1, 500.0)
+        assert int(seen.sum()) == culled.draws and int(vertices[seen].sum()) == culled.vertices
+        assert culled.seen.tolist() == seen.tolist()
 
 
 def test_culling_far_from_the_origin_keeps_every_rep_that_shows() -> None:

@@ -61,3 +61,15 @@ def test_the_protocol_refuses_a_malformed_ladder(bad):
         Delta(seq=1, t0=0.0, t1=0.5, selection=[1, 2, 6], **bad)
     Delta(seq=1, t0=0.0, t1=0.5, selection=[1, 2], ladder_rep=[1, 2], ladder_to=[0, 3], ladder_cost=[1e-4, 2e-4],
           ladder_value=[1.0, 2.0], ladder_base=0.01)
+
+
+@pytest.mark.parametrize("governor", [False, True])
+def test_a_governed_session_gets_collapse_maps_without_morphing(scenes, governor):  # noqa: F811
+    """The governor ramps between adjacent levels by their collapse maps: a session that governs gets them with
+    its adds even when it does not morph; one that does neither does not pay their bytes."""
+    link = Link(scenes, one_way=0.03, budget=0.004, morph=False, predict=False, governor=governor)
+    link.run(3.0)
+    index = link.index
+    adds = [a for _, d in link.deltas for a in d.add if a.kind == "mesh" and index.rep_morph[a.rep]]
+    assert adds
+    assert all((a.morph is not None) == governor for a in adds)
