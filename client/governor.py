@@ -12,14 +12,17 @@ comes before a coarser one of the same object), form one list; a state is a
 prefix of it. Each frame the governor predicts the frame's time from the units
 (vertices) of a state (``FramePredictor``: the time per unit measured over its
 last frames, with the frame's fixed part where that is measured to predict
-better), then takes decrements of lowest value until the prediction fits its aim
-(a share of the target), or increments of highest value while it fits (outside a
-band around the aim, so noise does not make it chatter).
+better) — the units the renderer counts for the last frame's levels from the
+camera about to draw (``expect``), changed by what the state's steps add or
+remove on the objects in view — then takes decrements of lowest value until the
+prediction fits its aim (a share of the target), or increments of highest value
+while it fits (outside a band around the aim, so noise does not make it chatter).
 
 A change is never drawn at once: each object's offset from the plan ramps over
 ``ramp`` seconds (a change of two levels or more as a chain of adjacent morphs,
 at most two levels per ramp), drawn as the schedule's geomorph between adjacent
-levels, so nothing pops.
+levels, so nothing pops; a new delta's plan starts each object where the last
+frame drew it.
 
 Pure numpy, no clocks: the caller passes client times and measured frame times.
 """
