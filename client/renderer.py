@@ -399,6 +399,10 @@ class Renderer:
 
     # ----------------------------------------------------------------- drawing
 
+    def _view_projection(self, forward: np.ndarray, up: np.ndarray, near: float, far: float) -> np.ndarray:
+        """(4, 4) float64 camera-relative projection @ view rotation (``proto.camera``)."""
+        return projection_matrix(self.fov_y, self.width / self.height, near, far) @ view_matrix(np.zeros(3), forward, up)
+
     def in_view(self, reps: np.ndarray, eye, forward, up, near: float, far: float) -> tuple[np.ndarray, np.ndarray]:
         """For a camera about to draw: (s,) bool, which of ``reps`` are resident and in its view (as ``draw``
         culls them), and (s,) int64, the vertices of each resident one (0 where not resident)."""
@@ -409,8 +413,7 @@ class Renderer:
         vertices = np.zeros(reps.size, np.int64)
         if here.any():
             eye = np.asarray(eye, np.float64)
-            vp = projection_matrix(self.fov_y, self.width / self.height, near, far) @ view_matrix(
-                np.zeros(3), np.asarray(forward, np.float64), np.asarray(up, np.float64))
+            vp = self._view_projection(np.asarray(forward, np.float64), np.asarray(up, np.float64), near, far)
             if self.cull:
                 seen[here] = in_frustum(self._slots, slots[here], vp, eye)
             vertices[here] = self._slots.vertices[slots[here]]
@@ -448,8 +451,7 @@ class Renderer:
         eye = np.asarray(eye, np.float64)
         up = np.asarray(up, np.float64)
         forward = np.asarray(forward, np.float64)
-        rotation = view_matrix(np.zeros(3), forward, up)
-        vp64 = projection_matrix(self.fov_y, self.width / self.height, near, far) @ rotation
+        vp64 = self._view_projection(forward, up, near, far)
         plan = plan_frame(reps, self._slots, vp64, eye, weights=weights, algorithms=algorithms, levels=levels,
                           cull=self.cull)
         self.missing += plan.missing
