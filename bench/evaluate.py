@@ -173,7 +173,7 @@ def derive_viewpoints(store: str | Path, duration: float, warmup: float, *, view
     if not missing:
         return {}
     from bench.scenarios.paths import visible_counts
-    from client.navigation import Tour
+    from proto.tour import Tour
     from server.scene.store import SceneStore
 
     with SceneStore.open(store) as s:

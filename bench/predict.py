@@ -19,7 +19,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from client.navigation import Tour
+from proto.tour import Tour
 from server.select.predict import MotionLimits, Predictor
 
 __all__ = ["run", "tours_from_stores", "WARMUP", "HORIZONS"]

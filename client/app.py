@@ -27,12 +27,13 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from proto.messages import ALGORITHMS, PROTOCOL_VERSION, Error, Hello
+from proto.tour import Tour
 
 from .connection import Arrived, Item, Link, Redialled, open_patiently, with_client
 from .frame_loop import FrameLoop, quiet_collector, run_frames
 from .calibrate import renderer_c_vertex
 from .governor import Governor
-from .navigation import Navigator, Tour
+from .navigation import Navigator
 from .records import ClientRun, FrameRecord
 from .renderer import Renderer
 from .splats import SplatLayer

@@ -28,11 +28,12 @@ from websockets.sync.client import ClientConnection
 from proto.camera import NEAR, far_plane
 from proto.codec import encode
 from proto.messages import MAX_LADDER_VERTICES, Ack, AlgorithmTerms, Camera, Delta, Error, FrameReport, Welcome
+from proto.tour import Tour
 
 from .cache import ResidentCache
 from .connection import Arrived, Closed, GaveUp, Item, Link, Redialled
 from .governor import Governor, GovernorLadder
-from .navigation import Navigator, Tour
+from .navigation import Navigator
 from .records import ClientRun, FrameRecord, FrameTrace, Reconnect
 from .schedule import Drawn, Schedule
 

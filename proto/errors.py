@@ -22,6 +22,7 @@ ERROR_CODES = {
     "unknown_solver": "no solver of that name exists",
     "bad_state": "the message is not allowed in the session's current state",
     "bad_geometry": "a geometry payload does not decode",
+    "bad_walkable": "a walkable grid does not decode",
     "bad_held": "the hello's held manifest does not decode or names representations the scene lacks",
     "rate_limited": "the session sent more messages per second than allowed; the message was dropped",
     "busy": "this replica serves as many sessions as it may; try another or later",

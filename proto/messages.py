@@ -35,6 +35,10 @@ __all__ = [
     "ModelAdd",
     "AlgorithmTerms",
     "Resume",
+    "Navigation",
+    "TourPlan",
+    "Heartbeat",
+    "KIOSK_STATES",
     "MAX_HELD_BYTES",
     "ALGORITHMS",
     "ClientMessage",
@@ -43,7 +47,7 @@ __all__ = [
     "SERVER_TYPES",
 ]
 
-PROTOCOL_VERSION = 6
+PROTOCOL_VERSION = 7
 
 #: Rendering algorithms (Funkhouser & Séquin's R), cheapest first; an index into this is an ``algorithm``.
 ALGORITHMS = ("flat", "lit", "textured")
@@ -120,6 +124,80 @@ class Resume(_Message):
     token: Annotated[str, Field(min_length=16, max_length=128, pattern=r"^[A-Za-z0-9_\-]+$")]
 
 
+#: Keys a tour plan carries at most (a 10-minute tour keyed ten times a second).
+MAX_PLAN_KEYS = 10_000
+
+
+class Navigation(_Message):
+    """How the client's camera can move: the degrees of freedom its interface gives (Zach 2002, 4.3).
+
+    ``walk`` keeps the eye ``eye_height`` m above the walkable ground (the welcome's ``walkable`` grid, when
+    asked for); ``fly`` is free flight; ``tour`` moves only along tour plans. The camera never leaves
+    ``bounds`` (min corner, max corner) when given. The speed and turn caps stay ``Hello.max_speed`` /
+    ``max_turn``.
+    """
+
+    mode: Literal["walk", "fly", "tour"] = "walk"
+    eye_height: Annotated[float, Field(gt=0.0, le=100.0)] = 1.7
+    bounds: Annotated[list[Vec3], Field(min_length=2, max_length=2)] | None = None
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "Navigation":
+        if self.bounds is not None and any(lo > hi for lo, hi in zip(*self.bounds)):
+            raise ValueError("bounds must be [min corner, max corner]")
+        return self
+
+
+class TourPlan(_Message):
+    """The camera path the client will follow: exact future poses for the path prediction.
+
+    ``keys`` carry client times (``t`` on the session's clock, ascending); between keys the camera moves
+    as ``proto.tour.Tour`` interpolates. An empty plan says the visitor drives from ``t`` on (predict from
+    the samples again). A new plan replaces the last one from its first key's time.
+    """
+
+    type: Literal["tour_plan"] = "tour_plan"
+    t: ClientTime
+    keys: Annotated[list[TourKey], Field(max_length=MAX_PLAN_KEYS)] = []
+    #: The tour's name and the stop it is at or heading to (shown on the fleet page), when it has them.
+    tour: Annotated[str, Field(max_length=128)] = ""
+
+    @model_validator(mode="after")
+    def _ascending(self) -> "TourPlan":
+        ts = [k.t for k in self.keys]
+        if any(b < a for a, b in zip(ts, ts[1:])):
+            raise ValueError("tour plan keys must be in ascending t")
+        return self
+
+
+#: What a kiosk is doing: playing its attract loop, driven by a visitor, counting down to the attract loop,
+#: outside its open hours (dimmed), or redialling a lost server (still drawing what it holds).
+KIOSK_STATES = ("attract", "visitor", "countdown", "closed", "reconnecting")
+
+
+class Heartbeat(_Message):
+    """A kiosk's report of its health, every ``interval`` seconds: the renderer's, not just the process's."""
+
+    type: Literal["heartbeat"] = "heartbeat"
+    kiosk: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")]
+    t: ClientTime
+    interval: Annotated[float, Field(ge=0.5, le=600.0)] = 5.0
+    state: Literal[KIOSK_STATES] = "attract"
+    #: Frames drawn since the kiosk started (advancing frames are what "alive" means).
+    frames: Count
+    fps: Annotated[float, Field(ge=0.0, le=10_000.0)] = 0.0
+    #: 95th percentile of the frame times since the last heartbeat, seconds.
+    frame_p95: Annotated[float, Field(ge=0.0, le=60.0)] = 0.0
+    #: The last few frame times (s), oldest first, for the fleet page's sparkline.
+    recent: Annotated[list[Annotated[float, Field(ge=0.0, le=60.0)]], Field(max_length=120)] = []
+    rss: Annotated[int, Field(ge=0, le=1 << 42)] = 0
+    #: GPU memory in use (bytes) where the driver tells it; None where it does not.
+    gpu_memory: Annotated[int, Field(ge=0, le=1 << 42)] | None = None
+    cache_bytes: Annotated[int, Field(ge=0, le=1 << 42)] = 0
+    reconnects: Count = 0
+    tour: Annotated[str, Field(max_length=128)] = ""
+    stop: Annotated[int, Field(ge=-1, le=1 << 16)] = -1
+
 
 class Hello(_Message):
     """Opens a session on a scene."""
@@ -155,6 +233,12 @@ class Hello(_Message):
     #: The client's own measure of its renderer's seconds per vertex (``client.calibrate``): the cost model's
     #: first guess, until the frame reports have measured the machine; None: the server's default guess.
     c_vertex: Annotated[float, Field(ge=1.0e-12, le=1.0e-3)] | None = None
+    #: The interface's degrees of freedom: the server predicts within them (protocol 7); None: unconstrained.
+    navigation: Navigation | None = None
+    #: The path the camera follows from the start, as a ``TourPlan`` would carry it (protocol 7).
+    plan: TourPlan | None = None
+    #: Send the scene's walkable grid in the welcome (``proto.walkable``), for walking with collision.
+    walkable: bool = False
 
     @model_validator(mode="after")
     def _distinct(self) -> "Hello":
@@ -264,6 +348,8 @@ class Welcome(_Message):
     resumed: bool = False
     #: Representations of the hello's ``held`` the server took as held (its mirror's count).
     held: Annotated[int, Field(ge=0, le=MAX_LIST)] = 0
+    #: The scene's walkable grid (``proto.walkable.encode``), when the hello asked and the scene has one.
+    walkable: Annotated[bytes, Field(max_length=1 << 24)] | None = None
 
 
 class Ping(_Message):
@@ -400,10 +486,11 @@ class Error(_Message):
     message: Annotated[str, Field(max_length=4096)]
 
 
-ClientMessage = Union[Hello, Camera, FrameReport, Pong, Ack]
+ClientMessage = Union[Hello, Camera, FrameReport, Pong, Ack, TourPlan, Heartbeat]
 ServerMessage = Union[Welcome, Delta, Error, Ping]
 
 CLIENT_TYPES: dict[str, type[_Message]] = {
     "hello": Hello, "camera": Camera, "frame_report": FrameReport, "pong": Pong, "ack": Ack,
+    "tour_plan": TourPlan, "heartbeat": Heartbeat,
 }
 SERVER_TYPES: dict[str, type[_Message]] = {"welcome": Welcome, "delta": Delta, "error": Error, "ping": Ping}

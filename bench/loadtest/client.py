@@ -392,7 +392,7 @@ class SimulatedClient:
             self.errors["unexpected"] += 1
             return False
         self.opened, self.session, self.tau = True, msg.session, float(msg.tau)
-        from client.navigation import Tour
+        from proto.tour import Tour
 
         self.tour = Tour(msg.tour) if msg.tour else Tour([{"t": 0.0, **msg.start.model_dump()}])
         # Each client its own stretch of the looped tour.

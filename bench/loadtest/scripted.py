@@ -125,7 +125,7 @@ def run_scripted(
         out = sessions[i].receive(c.hello(), now)
         welcome = out[0]
         c.opened, c.session, c.tau = True, welcome.session, float(welcome.tau)
-        from client.navigation import Tour
+        from proto.tour import Tour
 
         c.tour = Tour([k.model_dump() for k in welcome.tour])
         c.phase = c.tour.t[0] + c.tour.duration * ((c.index / c.n) % 1.0)

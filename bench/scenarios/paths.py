@@ -89,7 +89,7 @@ def anchor_of(index, *, viewport: tuple[int, int] = (640, 360), fov_y: float = 6
     """The scene's viewpoint C when it has one, else the tour pose with the most objects in view
     (61 poses sampled over the tour), else the start pose. The pitch is kept within ±45°; the speed is the
     tour's median, at most ``max_speed()``."""
-    from client.navigation import Tour
+    from proto.tour import Tour
 
     keys = list(index.tour) or [{"t": 0.0, **index.start}]
     tour = Tour(keys)
@@ -180,7 +180,7 @@ def straight_path(anchor: Anchor, *, duration: float, speed: float) -> list[dict
 
 def tour_segment(index, start: float, duration: float, step: float = 0.1) -> list[dict]:
     """The store's tour from tour time ``start`` for ``duration`` s, re-timed to begin at 0 (keys every ``step``)."""
-    from client.navigation import Tour
+    from proto.tour import Tour
 
     tour = Tour(list(index.tour) or [{"t": 0.0, **index.start}])
     ts = np.arange(0.0, duration + step / 2, step)

@@ -155,7 +155,7 @@ def spin(ctx: Context) -> dict:
     t0, t1 = hold, hold + spin_s
     run = ctx.run(keys, duration)
     ref = ctx.run(keys, duration, method="static", governor=False)  # unmanaged: no governor either
-    from client.navigation import Tour
+    from proto.tour import Tour
 
     tour = Tour(keys)
     sparse, dense = visible_counts(ctx.index, tour.pose_at(np.array([hold / 2, t1 + 0.5])), ctx.fov_y, ctx.viewport)

@@ -294,7 +294,7 @@ def test_resolve_scene_says_what_is_wrong(tmp_path):
 def test_a_scene_without_viewpoints_gets_stand_ins_for_a_and_c(denhaag_store) -> None:
     from bench.evaluate import derive_viewpoints
     from bench.scenarios.paths import visible_counts
-    from client.navigation import Tour
+    from proto.tour import Tour
     from server.scene.store import SceneStore
 
     got = derive_viewpoints(denhaag_store, 20.0, 2.0)

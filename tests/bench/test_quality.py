@@ -8,7 +8,7 @@ import pytest
 from bench import quality
 from bench.replay import Replayer
 from client.records import FrameTrace
-from client.navigation import Tour
+from proto.tour import Tour
 from server.scene.store import SceneStore
 
 VIEW = (160, 90)

@@ -8,7 +8,7 @@ import pytest
 from bench import quality
 from bench.replay import Replayer, finest_cut, tree_groups
 from client.records import FrameTrace
-from client.navigation import Tour
+from proto.tour import Tour
 from server.scene.index import TREES
 from server.scene.store import SceneStore
 from server.select.morph import rep_parents

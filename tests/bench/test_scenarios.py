@@ -24,7 +24,7 @@ from bench.scenarios.verdicts import (
     below_coarsest_verdict, drift_verdict, network_verdict, oscillation_verdict, spin_verdict, turn_verdict,
 )
 from client.records import FrameRecord, FrameTrace
-from client.navigation import Tour
+from proto.tour import Tour
 from server.scene.store import SceneStore
 
 #: (solver, predict, morph) of each method, as a session is asked for it.

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.navigation import Tour
+from proto.tour import Tour
 from proto.messages import TourKey
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.navigation import Tour
+from proto.tour import Tour
 from client.renderer import Renderer
 from proto.camera import NEAR, far_plane
 from proto.geometry import Geometry, decode_geometry

@@ -17,7 +17,7 @@ from time import perf_counter
 import numpy as np
 import pytest
 
-from client.navigation import Tour
+from proto.tour import Tour
 from client.schedule import Schedule
 from proto import PROTOCOL_VERSION
 from proto.codec import decode_client, decode_server, encode

@@ -8,7 +8,7 @@ import itertools
 import numpy as np
 import pytest
 
-from client.navigation import Tour
+from proto.tour import Tour
 from proto import PROTOCOL_VERSION
 from proto.codec import decode_server, encode
 from proto.manifest import digest

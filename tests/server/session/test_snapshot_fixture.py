@@ -73,7 +73,7 @@ class HeldClient:
         return others
 
     def run(self, session: Session, seconds: float) -> None:
-        from client.navigation import Tour
+        from proto.tour import Tour
 
         tour = Tour(self.index.tour)
         end = self.t + seconds

@@ -23,7 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from client.cache import ResidentCache
-from client.navigation import Tour
+from proto.tour import Tour
 from proto import PROTOCOL_VERSION
 from proto.codec import decode_server, encode
 from proto.manifest import digest, pack_held
