@@ -235,6 +235,52 @@ def bench_hostile(
         raise typer.Exit(1)
 
 
+@bench_app.command("soak")
+def bench_soak(
+    duration: float = typer.Option(3600.0, min=60.0, help="seconds of soak (the README's figures: one hour; CI: 120)"),
+    store: Optional[Path] = typer.Option(None, "--store", help="scene store (default: the cached demo scene)"),
+    cut_every: Optional[float] = typer.Option(None, help="seconds between network cuts (default: 300, or a third of "
+                                              "a run shorter than 15 minutes)"),
+    cut_for: Optional[float] = typer.Option(None, help="seconds each cut lasts (default: 60, or a quarter of "
+                                            "--cut-every when that is scaled)"),
+    sample_every: float = typer.Option(10.0, min=1.0, help="seconds between samples of the kiosk"),
+    seed: int = typer.Option(0, help="seed of the synthetic visitors"),
+    out: Path = typer.Option(Path("soak"), help="folder for the kiosk's config, log, status and the chart"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON line: passed, each pass line, the chart"),
+) -> None:
+    """A headless kiosk on its attract loop with synthetic visitors, through network cuts and a server restart:
+    RSS, threads, sockets, frames and deltas checked against the pass lines; a chart of the run."""
+    from bench.soak import SoakPlan, run
+    from bench.stores import build_demo, demo_store
+
+    try:
+        plan = SoakPlan.scaled(duration, sample_every)
+        if cut_every is not None or cut_for is not None:
+            every = cut_every if cut_every is not None else plan.cut_every
+            plan = SoakPlan(duration=duration, cut_every=every,
+                            cut_for=cut_for if cut_for is not None else min(plan.cut_for, every / 4.0),
+                            sample_every=sample_every)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--duration/--cut-every/--cut-for") from None
+    if store is None:
+        store = demo_store(24, 0)
+        if not store.exists():
+            build_demo(store, 24, 0, quiet=as_json)
+    elif not store.exists():
+        raise typer.BadParameter(f"no such store: {store}", param_hint="--store")
+    bar, tick = progress_bar("bench soak", quiet=as_json)
+    with bar:
+        result = run(store, plan, out, seed=seed, progress=tick)
+    for name, line in result["lines"].items():
+        mark = "PASS" if line["ok"] else "FAIL"
+        typer.echo(f"{mark}  {name:<26} {line['figure']!s:>8}  (limit {line['limit']})", err=as_json)
+    typer.echo(f"chart: {result['chart']}", err=as_json)
+    if as_json:
+        print(json.dumps({k: v for k, v in result.items() if k not in ("samples",)}))
+    if not result["passed"]:
+        raise typer.Exit(1)
+
+
 def demo(
     duration: float = typer.Option(10.0, help="seconds of tour to run"),
     target_ms: float = typer.Option(50.0, help="target frame time in milliseconds"),
