@@ -52,17 +52,26 @@ VEGETATION_CLASSES = ("solitaryvegetationobject", "tree")
 
 
 def _thin(p: np.ndarray, target: int) -> np.ndarray:
-    """Indices of about ``target`` points of p (n, 3), one per voxel of a grid fitted to that count."""
+    """Indices (sorted) of at most ``target`` points of p (n, 3): the first point in each voxel of the
+    finest cubic grid that leaves no more than that many (bisected in log voxel size)."""
     lo = p.min(axis=0)
-    extent = np.maximum(p.max(axis=0) - lo, 1e-9)
-    voxel = float(np.prod(extent) / target) ** (1 / 3)
-    keep = np.arange(p.shape[0])
-    for _ in range(32):
+    span = float(np.max(p.max(axis=0) - lo)) or 1.0
+
+    def first_per_voxel(voxel: float) -> np.ndarray:
         cell = np.floor((p - lo) / voxel).astype(np.int64)
-        _, keep = np.unique(cell, axis=0, return_index=True)
-        if keep.size <= target:
-            break
-        voxel *= 1.25 * (keep.size / target) ** 0.5  # a scan is a surface: count ~ 1 / voxel²
+        side = int(cell.max()) + 1
+        _, first = np.unique((cell[:, 0] * side + cell[:, 1]) * side + cell[:, 2], return_index=True)
+        return first
+
+    fine, coarse = span / min(4.0 * target, 2e6), span  # too many points / one point (keys fit int64)
+    keep = first_per_voxel(coarse)
+    for _ in range(24):
+        mid = float(np.sqrt(fine * coarse))
+        got = first_per_voxel(mid)
+        if got.size > target:
+            fine = mid
+        else:
+            coarse, keep = mid, got
     return np.sort(keep)
 
 
