@@ -27,9 +27,9 @@ import numpy as np
 
 from .builder import BuildOptions, Progress, build_store
 from .data import data_file
-from .source import HeightGrid, SourceError, SourceScene, TreeInstances
+from .source import HeightGrid, SourceError, SourceScene, TreeInstances, TreeModel
 
-__all__ = ["SCENES", "build_named", "build_path", "is_named", "with_tree_models"]
+__all__ = ["SCENES", "build_named", "build_path", "is_named", "load_tree_model", "with_tree_models"]
 
 
 @dataclass(frozen=True)
@@ -163,10 +163,19 @@ SCENES: dict[str, Recipe] = {
 }
 
 
+def load_tree_model(path: str | os.PathLike[str], seed: int = 0) -> TreeModel:
+    """Read a point-cloud file (``importers.pointcloud``) as a tree model named after the file (``scans``)."""
+    from .importers.pointcloud import read_point_cloud
+    from .scans import scan_tree_model
+
+    path = Path(path)
+    return scan_tree_model(read_point_cloud(path), path.name.split(".")[0], str(path), seed=seed)
+
+
 def with_tree_models(scene: SourceScene, files: Sequence[str | os.PathLike[str]], base: Path | None = None,
                      progress: Progress | None = None) -> SourceScene:
     """Draw the scene's trees with the scans of ``files`` and of the files its trees name (under ``base``)."""
-    from .scans import load_tree_model, named_files, use_tree_models
+    from .scans import named_files, use_tree_models
 
     tick = progress or (lambda stage, done, total: None)
     named_paths = named_files(scene, base) if base is not None else {}

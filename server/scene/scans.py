@@ -29,6 +29,9 @@ proportions: it is scaled uniformly to the tree's height, turned by the tree's
 yaw and stood on the tree's foot. A vegetation object given as a mesh (CityJSON
 trees, CityGML trees with explicit geometry) becomes such a tree too, its
 height and crown width its mesh's.
+
+Files are read by ``importers.pointcloud`` and turned into models by
+``catalog.load_tree_model``; this module only works on arrays.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from .points import tree_colors
 from .source import PointCloud, SourceError, SourceScene, TreeInstances, TreeModel
 
 __all__ = ["MAX_SCAN_POINTS", "NEIGHBOURS", "TREE_MODEL_ATTRIBUTE", "VEGETATION_CLASSES", "scan_tree_model",
-           "load_tree_model", "named_files", "use_tree_models", "model_source"]
+           "named_files", "use_tree_models", "model_source"]
 
 MAX_SCAN_POINTS = 1 << 18
 NEIGHBOURS = 10
@@ -117,14 +120,6 @@ def scan_tree_model(cloud: PointCloud, name: str, source: str, *, max_points: in
     attributes = {"generator": "scan", "source": source, "height": height, "crown_width": width,
                   "spacing": spacing, "scan_points": len(cloud), "offset": offset.tolist()}
     return TreeModel(name, None, attributes, PointCloud(p, colors, normals))
-
-
-def load_tree_model(path: str | Path, seed: int = 0) -> TreeModel:
-    """Read a point-cloud file (``importers.pointcloud``) and make it a tree model named after the file."""
-    from .importers.pointcloud import read_point_cloud
-
-    path = Path(path)
-    return scan_tree_model(read_point_cloud(path), path.name.split(".")[0], str(path), seed=seed)
 
 
 def _object_file(obj) -> str | None:

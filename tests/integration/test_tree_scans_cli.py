@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from proto.points import decode_instances, decode_points
+from server.scene.catalog import load_tree_model
 from server.scene.data import data_file
 from server.scene.importers import load_source
 from server.scene.importers.pointcloud import read_xyz
 from server.scene.index import TREES
 from server.scene.points import point_model
-from server.scene.scans import load_tree_model
 from server.scene.store import SceneStore
 
 

@@ -11,12 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from server.scene.catalog import with_tree_models
+from server.scene.catalog import load_tree_model, with_tree_models
 from server.scene.data import data_file
 from server.scene.importers import load_source
 from server.scene.importers.pointcloud import read_xyz
 from server.scene.points import point_model
-from server.scene.scans import load_tree_model, scan_tree_model, use_tree_models
+from server.scene.scans import scan_tree_model, use_tree_models
 from server.scene.source import PointCloud, SourceError, SourceScene, TreeInstances
 from server.scene.vegetation import broadleaf, conifer
 
