@@ -234,10 +234,12 @@ def use_tree_models(scene: SourceScene, scans: list[TreeModel], named: dict[str,
             model[i], scanned[i] = first_named[f], True
     matrix = np.r_[old.matrix, np.zeros((len(veg), 4, 4))]
     if scanned.any():
-        scan_height = np.array([models[m].attributes["height"] for m in model[scanned]])
-        matrix[scanned] = _placed(foot[scanned], yaw[scanned], height[scanned] / scan_height)
+        model_height = np.array([m.attributes.get("height", np.nan) if m.points is not None else np.nan
+                                 for m in models])
+        matrix[scanned] = _placed(foot[scanned], yaw[scanned], height[scanned] / model_height[model[scanned]])
     used, model = np.unique(model, return_inverse=True)
     scene.tree_models = [models[m] for m in used]
     scene.trees = TreeInstances(model, matrix, names)
-    scene.objects = [o for o in scene.objects if not any(o is v for v in veg)]
+    gone = {id(o) for o in veg}
+    scene.objects = [o for o in scene.objects if id(o) not in gone]
     return int(scanned.sum())

@@ -184,10 +184,10 @@ def read_ply(path: str | Path) -> PointCloud:
         table = _table(path, block, header_lines + skip + 1, (len(columns),))
         data = {c: table[:, k] for k, c in enumerate(columns)}
         first_line = header_lines + skip + 1
-        line_of = lambda i: f"line {first_line + i}"  # noqa: E731
+        line_of = lambda i: f"line {first_line + i}"
     else:
         data = _ply_binary(path, raw, fmt, elements, at, body)
-        line_of = lambda i: f"vertex {i + 1}"  # noqa: E731
+        line_of = lambda i: f"vertex {i + 1}"
     xyz = np.column_stack([np.asarray(data[c], np.float64) for c in "xyz"])
     finite = np.isfinite(xyz).all(axis=1)
     if not finite.all():

@@ -12,10 +12,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from server.scene.importers.pointcloud import read_las, read_ply, read_point_cloud, read_xyz
-from server.scene.source import SourceError
-
 from server.scene.data import data_file
+from server.scene.importers.pointcloud import (
+    read_las,
+    read_ply,
+    read_point_cloud,
+    read_xyz,
+)
+from server.scene.source import SourceError
 
 
 def _shared(name: str) -> Path:

@@ -228,3 +228,13 @@ def test_cityjson_vegetation_objects_become_scanned_trees(tmp_path, tree13):
     plain = scene.tree_models[scene.trees.model[1]]
     assert scene.trees.matrix[1, 2, 2] * plain.attributes["height"] == pytest.approx(16.0)
     assert Path(plain.attributes["source"]).name == "ahn3_delft.xyz"
+
+
+def test_inspect_names_where_each_model_came_from(tree13, tmp_path):
+    from server.scene.scans import model_source
+
+    assert model_source(conifer(4)) == "generated (conifer, seed 4)"
+    assert model_source(tree13).endswith("tree13.xyz")
+    gml = tmp_path / "t.gml"
+    gml.write_text(_GML.format(attribute="", height=7))
+    assert model_source(load_source(gml).tree_models[0]) == "prototype proto"
