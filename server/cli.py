@@ -77,6 +77,9 @@ def build(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
     force: bool = typer.Option(False, "--force", help="replace an existing OUTPUT (atomically, once the build "
                                "completes)"),
+    tree_model: list[Path] = typer.Option([], "--tree-model", help="a scanned tree (.xyz, .ply, .las, .laz point "
+                                          "cloud) to draw the scene's trees with instead of their models; repeat "
+                                          "for several, shared out by crown shape"),
 ) -> None:
     """Build a scene store. The store appears only when the build completes; an existing one is kept unless --force."""
     from server.scene.catalog import build_named, build_path, is_named
@@ -97,6 +100,14 @@ def build(
             param_hint="SOURCE")
     if not named and Path(source).is_dir():
         fail(f"{source!r} is a directory; give one scene file (CityJSON, glTF/GLB, OBJ, PLY, DEM, .npz, CityGML)")
+    from server.scene.importers.pointcloud import POINT_CLOUD_SUFFIXES
+
+    for f in tree_model:
+        if not f.is_file():
+            raise typer.BadParameter(f"{str(f)!r} is not a file", param_hint="--tree-model")
+        if f.suffix.lower() not in POINT_CLOUD_SUFFIXES:
+            raise typer.BadParameter(f"{str(f)!r} is not a point cloud ({', '.join(POINT_CLOUD_SUFFIXES)})",
+                                     param_hint="--tree-model")
     if output is None:
         output = Path(f"{source if named else Path(source).name.split('.')[0]}.db")
     if not named and output.resolve() == Path(source).resolve():
@@ -111,9 +122,9 @@ def build(
         with bar:
             if named:
                 summary = build_named(source, output, seed=seed, size=size, grid=grid, workers=workers,
-                                      progress=tick)
+                                      progress=tick, tree_models=tree_model)
             else:
-                summary = build_path(source, output, workers=workers, progress=tick)
+                summary = build_path(source, output, workers=workers, progress=tick, tree_models=tree_model)
     except (SourceError, StoreError, FileNotFoundError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None

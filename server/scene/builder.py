@@ -38,6 +38,7 @@ from .blocks import oriented_box
 from .fidelity import Bounds, Fidelity
 from .index import HLOD, MESH, TERRAIN, TREES
 from .ladder import shaped_chain, shaped_source_chain
+from .scans import model_source
 from .lod import build_chain, chain_from_levels
 from .source import Mesh, SourceScene
 from .store import SceneStore
@@ -382,7 +383,9 @@ def build_store(
         writer.set_meta(shape_guard={"levels": levels, **({"proxies": proxies} if proxies else {})},
                         origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {},
                         sources=list(source.sources), kinds=counts,
-                        tree_instances=len(source.trees) if source.trees is not None else 0)
+                        tree_instances=len(source.trees) if source.trees is not None else 0,
+                        tree_models=[{"name": pm.name, "source": model_source(tm), "points": len(pm)}
+                                     for tm, pm in zip(source.tree_models, models)])
     timings["write"] = time.perf_counter() - t0
 
     with SceneStore.open(path) as store:

@@ -10,6 +10,10 @@ Every named scene is deterministic from its seed:
 
 Anything else is taken as a path to a CityJSON, glTF/GLB, OBJ, PLY, USGS DEM,
 ``.npz`` height grid or CityGML file, built with a generated orbit tour.
+
+Either kind can draw its trees with scanned tree models (``tree_models``: point-cloud
+files, ``server.scene.scans``); a file's own trees may name theirs (the ``tree_model``
+attribute), resolved against the file's folder.
 """
 
 from __future__ import annotations
@@ -17,15 +21,15 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
 from .builder import BuildOptions, Progress, build_store
 from .data import data_file
-from .source import HeightGrid, SourceScene, TreeInstances
+from .source import HeightGrid, SourceError, SourceScene, TreeInstances, TreeModel
 
-__all__ = ["SCENES", "build_named", "build_path", "is_named"]
+__all__ = ["SCENES", "build_named", "build_path", "is_named", "load_tree_model", "with_tree_models"]
 
 
 @dataclass(frozen=True)
@@ -159,37 +163,71 @@ SCENES: dict[str, Recipe] = {
 }
 
 
+def load_tree_model(path: str | os.PathLike[str], seed: int = 0) -> TreeModel:
+    """Read a point-cloud file (``importers.pointcloud``) as a tree model named after the file (``scans``)."""
+    from .importers.pointcloud import read_point_cloud
+    from .scans import scan_tree_model
+
+    path = Path(path)
+    return scan_tree_model(read_point_cloud(path), path.name.split(".")[0], str(path), seed=seed)
+
+
+def with_tree_models(scene: SourceScene, files: Sequence[str | os.PathLike[str]], base: Path | None = None,
+                     progress: Progress | None = None) -> SourceScene:
+    """Draw the scene's trees with the scans of ``files`` and of the files its trees name (under ``base``)."""
+    from .scans import named_files, use_tree_models
+
+    tick = progress or (lambda stage, done, total: None)
+    named_paths = named_files(scene, base) if base is not None else {}
+    total = len(files) + len(named_paths)
+    scans, named = [], {}
+    for i, f in enumerate(files):
+        scans.append(load_tree_model(f, seed=i))
+        tick("tree scans", i + 1, total)
+    for name, path in named_paths.items():
+        named[name] = load_tree_model(path, seed=len(scans) + len(named))
+        tick("tree scans", len(scans) + len(named), total)
+    if scans or named:
+        use_tree_models(scene, scans, named)
+    return scene
+
+
 def is_named(name: str) -> bool:
     return name in SCENES or name == "demo"
 
 
 def build_named(name: str, path: str | os.PathLike[str], *, seed: int = 0, size: int | None = None,
-                grid: int | None = None, workers: int | None = None, progress: Progress | None = None) -> dict:
+                grid: int | None = None, workers: int | None = None, progress: Progress | None = None,
+                tree_models: Sequence[str | os.PathLike[str]] = ()) -> dict:
     """Build the named scene into ``path``; ``size`` scales it (buildings, trees) where that makes sense,
-    ``grid`` resamples a height-field scene's DEM to grid × grid samples (``sthelens`` only)."""
+    ``grid`` resamples a height-field scene's DEM to grid × grid samples (``sthelens`` only),
+    ``tree_models`` (point-cloud files) draw its trees instead of the generated models."""
     if grid is not None and (name != "sthelens" or not 2 <= grid <= 8193):
         raise ValueError(f"--grid resamples the sthelens DEM to 2..8193 samples a side; got {grid} for {name!r}")
     tick = progress or (lambda stage, done, total: None)
     if name == "demo":
         from .demo import build_demo
 
+        if tree_models:
+            raise SourceError("demo: the scene has no trees to draw with tree models")
         return build_demo(path, objects=size or 576, seed=seed, workers=workers,
                           progress=lambda d, t: tick("objects", d, t))
     if name not in SCENES:
         raise KeyError(f"unknown scene {name!r}; named scenes: demo, {', '.join(SCENES)}")
     recipe = SCENES[name]
     source, tour, viewpoints = recipe.make(seed, size, tick, **({"grid": grid} if grid else {}))
+    with_tree_models(source, tree_models, progress=tick)
     options = replace(recipe.options, workers=workers) if workers else recipe.options
     return build_store(path, source, name=name, tour=tour, viewpoints=viewpoints, seed=seed,
                        generator=f"walkstream build {name}", options=options, progress=tick)
 
 
 def build_path(source: str | os.PathLike[str], path: str | os.PathLike[str], *, workers: int | None = None,
-               progress: Progress | None = None) -> dict:
-    """Import a user's file and build it, with a generated tour."""
+               progress: Progress | None = None, tree_models: Sequence[str | os.PathLike[str]] = ()) -> dict:
+    """Import a user's file and build it, with a generated tour; ``tree_models`` as in ``build_named``."""
     from .importers import load_source
 
-    scene = load_source(Path(source))
+    scene = with_tree_models(load_source(Path(source)), tree_models, Path(source).parent, progress)
     options = BuildOptions(workers=workers) if workers else BuildOptions()
     return build_store(path, scene, name=Path(source).name.split(".")[0], generator=f"walkstream build {source}",
                        options=options, progress=progress)

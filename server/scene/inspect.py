@@ -83,6 +83,9 @@ def inspect_store(path: str | os.PathLike[str]) -> dict:
         "classes": {name: int(c) for name, c in zip(idx.class_names, classes)},
         "kinds": kinds,
         "tree_models": int(idx.model_points.shape[0]),
+        # Stores built before the sources were recorded list the models without one.
+        "tree_model_sources": [{"id": i, **m} for i, m in enumerate(idx.meta.get("tree_models") or [])]
+        or [{"id": i, "name": None, "source": None, "points": int(n)} for i, n in enumerate(idx.model_points)],
         "tree_instances": int(idx.meta.get("tree_instances", 0)),
         "tour_seconds": float(idx.tour[-1]["t"]) if idx.tour else 0.0,
         "viewpoints": idx.meta.get("viewpoints") or {},
@@ -180,4 +183,6 @@ def format_report(r: dict) -> list[str]:
         lines.append(line)
     if r["tree_models"]:
         lines.append(f"  tree models: {r['tree_models']}, tree instances: {r['tree_instances']}")
+        for m in r["tree_model_sources"]:
+            lines.append(f"    model {m['id']}: {m['name'] or '-'}  {m['points']} points  from {m['source'] or '-'}")
     return lines

@@ -18,7 +18,8 @@ import numpy as np
 
 from .source import Mesh, TreeModel
 
-__all__ = ["PointModel", "sample_surface", "prefix_order", "prefix_tree", "tree_face_colors", "point_model"]
+__all__ = ["PointModel", "sample_surface", "prefix_order", "prefix_tree", "tree_colors", "tree_face_colors",
+           "point_model"]
 
 _GREY = np.array([128, 128, 128], np.uint8)
 
@@ -250,36 +251,56 @@ def prefix_order(positions: np.ndarray) -> np.ndarray:
     return prefix_tree(positions)[0]
 
 
-def tree_face_colors(mesh: Mesh, trunk_faces: int | None = None, seed: int = 0) -> np.ndarray:
+def tree_colors(points: np.ndarray, reference: np.ndarray | None = None, trunk: np.ndarray | None = None,
+                seed: int = 0) -> np.ndarray:
     """(m, 3) uint8 bark-and-foliage colours: trunk brown, crown greens lighter with height.
 
-    trunk_faces : the first faces that are trunk (procedural models record it); if None,
-                  faces near the z axis in the lowest third of the model count as trunk.
+    points    : (m, 3) float, what is coloured (face centres, or a scan's points), model space
+    reference : (n, 3) float, the model's points its height and spread are measured on
+                (default: ``points``)
+    trunk     : (m,) bool, which points are trunk; if None, those near the z axis in the
+                lowest third of the model
     """
-    c = mesh.positions[mesh.faces].mean(axis=1)
-    z0, z1 = float(mesh.positions[:, 2].min()), float(mesh.positions[:, 2].max())
+    c = np.asarray(points, np.float64)
+    ref = c if reference is None else np.asarray(reference, np.float64)
+    z0, z1 = float(ref[:, 2].min()), float(ref[:, 2].max())
     rel = (c[:, 2] - z0) / max(z1 - z0, 1e-9)
-    if trunk_faces is None:
+    if trunk is None:
         axis_dist = np.hypot(c[:, 0], c[:, 1])
-        spread = max(float(np.hypot(mesh.positions[:, 0], mesh.positions[:, 1]).max()), 1e-9)
+        spread = max(float(np.hypot(ref[:, 0], ref[:, 1]).max()), 1e-9)
         trunk = (rel < 1 / 3) & (axis_dist < 0.15 * spread)
-    else:
-        trunk = np.arange(mesh.n_faces) < trunk_faces
     rng = np.random.default_rng(seed)
-    jitter = rng.uniform(-12, 12, (mesh.n_faces, 1))
+    jitter = rng.uniform(-12, 12, (c.shape[0], 1))
     green = np.column_stack([30 + 40 * rel, 80 + 80 * rel, 25 + 30 * rel]) + jitter
     brown = np.array([101.0, 67.0, 33.0]) + jitter / 2
     return np.clip(np.where(trunk[:, None], brown, green), 0, 255).astype(np.uint8)
 
 
-def point_model(tree_model: TreeModel, n_points: int = 4096, seed: int = 0) -> PointModel:
-    """Sample a tree model's surface and put the samples in prefix order.
+def tree_face_colors(mesh: Mesh, trunk_faces: int | None = None, seed: int = 0) -> np.ndarray:
+    """(m, 3) uint8 ``tree_colors`` of a mesh's faces.
 
-    Colours come from ``attributes["face_colors"]`` (m, 3) if the model has them, else
+    trunk_faces : the first faces that are trunk (procedural models record it); if None,
+                  faces near the z axis in the lowest third of the model count as trunk.
+    """
+    trunk = None if trunk_faces is None else np.arange(mesh.n_faces) < trunk_faces
+    return tree_colors(mesh.positions[mesh.faces].mean(axis=1), mesh.positions, trunk, seed)
+
+
+def point_model(tree_model: TreeModel, n_points: int = 4096, seed: int = 0) -> PointModel:
+    """A tree model's splats in prefix order: a mesh's surface samples, or a scan's own points.
+
+    Mesh: colours come from ``attributes["face_colors"]`` (m, 3) if the model has them, else
     ``tree_face_colors`` (honouring ``attributes["trunk_faces"]``). The splat radius of a
     prefix is the larger of its coverage bound and the radius of N equal discs tiling the
     surface area, sqrt(A / (π N)), so the full set still draws closed.
+
+    Scan (``tree_model.points``, ``server.scene.scans``): its points are ordered the same
+    way and the first ``n_points`` kept; the discs are those of the whole scan, each of
+    ``attributes["spacing"]`` (its point spacing), shared out over N points: spacing ·
+    sqrt(n_scan / N).
     """
+    if tree_model.points is not None:
+        return _scan_point_model(tree_model, n_points)
     mesh = tree_model.mesh
     colors = tree_model.attributes.get("face_colors")
     if colors is None:
@@ -294,6 +315,29 @@ def point_model(tree_model: TreeModel, n_points: int = 4096, seed: int = 0) -> P
         positions=positions,
         normals=normals[order],
         colors=cols[order],
+        radius=np.maximum(bound, disc),
+        lo=positions.min(axis=0),
+        hi=positions.max(axis=0),
+    )
+
+
+def _scan_point_model(tree_model: TreeModel, n_points: int) -> PointModel:
+    scan = tree_model.points
+    if n_points <= 0:
+        raise ValueError(f"point count must be positive, got {n_points}")
+    spacing = float(tree_model.attributes.get("spacing", 0.0))
+    if not np.isfinite(spacing) or spacing < 0:
+        raise ValueError(f"tree model {tree_model.name!r}: spacing must be finite and ≥ 0, got {spacing}")
+    order, _, bound = prefix_tree(scan.positions)
+    n = min(n_points, order.size)
+    order, bound = order[:n], bound[:n]
+    disc = spacing * np.sqrt(len(scan) / np.arange(1, n + 1))
+    positions = scan.positions[order]
+    return PointModel(
+        name=tree_model.name,
+        positions=positions,
+        normals=scan.normals[order],
+        colors=scan.colors[order],
         radius=np.maximum(bound, disc),
         lo=positions.min(axis=0),
         hi=positions.max(axis=0),

@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Mesh", "SourceObject", "HeightGrid", "TreeModel", "TreeInstances", "SourceScene", "SourceError"]
+__all__ = ["Mesh", "PointCloud", "SourceObject", "HeightGrid", "TreeModel", "TreeInstances", "SourceScene",
+           "SourceError"]
 
 
 class SourceError(ValueError):
@@ -74,21 +75,57 @@ class HeightGrid:
 
 
 @dataclass
+class PointCloud:
+    """Measured points (a laser scan), as a point-cloud file gives them.
+
+    positions : (n, 3) float64
+    colors    : (n, 3) uint8, or None when the file has none
+    normals   : (n, 3) float64 unit vectors, or None when the file has none
+    """
+
+    positions: np.ndarray
+    colors: np.ndarray | None = None
+    normals: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.positions = np.asarray(self.positions, np.float64).reshape(-1, 3)
+        n = self.positions.shape[0]
+        if self.colors is not None:
+            self.colors = np.asarray(self.colors, np.uint8).reshape(n, 3)
+        if self.normals is not None:
+            self.normals = np.asarray(self.normals, np.float64).reshape(n, 3)
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+
+@dataclass
 class TreeModel:
-    """A tree prototype: its mesh in model space (base at the origin, z up)."""
+    """A tree prototype in model space (base at the origin, z up): a mesh, or a scan's points.
+
+    mesh   : the surface the splats are sampled from (generated and CityGML prototypes)
+    points : the splats themselves, for a scanned tree (``server.scene.scans``); then
+             ``mesh`` is None and every point has a colour and a normal
+    """
 
     name: str
-    mesh: Mesh
+    mesh: Mesh | None
     attributes: dict = field(default_factory=dict)
+    points: PointCloud | None = None
 
 
 @dataclass
 class TreeInstances:
-    """Placed trees: instance i draws ``models[model[i]]`` with the 4×4 ``matrix[i]`` (model → world)."""
+    """Placed trees: instance i draws ``models[model[i]]`` with the 4×4 ``matrix[i]`` (model → world).
+
+    model_file : per instance, a point-cloud file the source names for that tree (the
+                 ``tree_model`` attribute, ``server.scene.scans``), or None; empty: none do
+    """
 
     model: np.ndarray  # (k,) int32
     matrix: np.ndarray  # (k, 4, 4) float64
     names: list[str] = field(default_factory=list)
+    model_file: list[str | None] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.model = np.asarray(self.model, np.int32).reshape(-1)
@@ -128,7 +165,11 @@ class SourceScene:
             if not (np.isfinite(g.spacing).all() and min(g.spacing) > 0 and np.isfinite(g.origin).all()):
                 raise SourceError(f"height grid {g.name!r}: origin {g.origin} / spacing {g.spacing} not finite and > 0")
         for t in self.tree_models:
-            if not np.isfinite(t.mesh.positions).all() or t.mesh.n_faces == 0:
+            if t.points is not None:
+                p = t.points
+                if len(p) == 0 or not np.isfinite(p.positions).all() or p.colors is None or p.normals is None:
+                    raise SourceError(f"tree model {t.name!r}: needs finite points, each with a colour and a normal")
+            elif t.mesh is None or not np.isfinite(t.mesh.positions).all() or t.mesh.n_faces == 0:
                 raise SourceError(f"tree model {t.name!r}: needs faces and finite vertices")
         if self.trees is not None and len(self.trees):
             bad = np.nonzero(~np.isfinite(self.trees.matrix).all(axis=(1, 2)))[0]

@@ -10,7 +10,9 @@ model → world matrix is ``translate(referencePoint) @ M``. Prototypes become
 ``TreeModel`` s (one mesh each, so a renderer can instance them), trees become
 one ``TreeInstances``; their height and crown diameter go to the model's
 ``attributes["instances"]`` lists, in instance order, since TreeInstances has
-no per-instance attribute table.
+no per-instance attribute table. A tree's generic attribute ``tree_model``
+(``gen:stringAttribute`` or ``gen:uriAttribute``) names a point-cloud file to
+draw it with instead (``TreeInstances.model_file``; ``server.scene.scans``).
 
 **Buildings.** Each ``Building`` and ``BuildingPart`` with polygons of its own
 becomes a ``SourceObject`` ("building" / "buildingpart"); a part records its
@@ -35,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from server.scene.scans import TREE_MODEL_ATTRIBUTE
 from server.scene.source import Mesh, SourceError, SourceObject, SourceScene, TreeInstances, TreeModel
 
 __all__ = ["load_citygml"]
@@ -149,6 +152,15 @@ def _float_or_none(e):
         return None
 
 
+def _generic(e: ET.Element, name: str) -> str | None:
+    """The value of the generic (``gen:``) string or URI attribute ``name`` of a city object, if any."""
+    for c in e:
+        if _local(c.tag) in ("stringAttribute", "uriAttribute") and c.get("name") == name:
+            value = _child(c, "value")
+            return value.text.strip() if value is not None and value.text and value.text.strip() else None
+    return None
+
+
 def load_citygml(path) -> SourceScene:
     """Trees (instanced prototypes) and LoD2 buildings from a CityGML file; see the module docstring."""
     path = Path(path)
@@ -157,7 +169,7 @@ def load_citygml(path) -> SourceScene:
     tri = _triangulator()
     protos: dict[str, list] = {}  # gml:id → polygons
     proto_order: list[str] = []
-    trees = []  # (name, href, matrix, height, crown)
+    trees = []  # (name, href, matrix, height, crown, tree_model file)
     objects: list[SourceObject] = []
     crs = None
     depth = 0
@@ -202,7 +214,7 @@ def load_citygml(path) -> SourceScene:
             models.append(TreeModel(pid, _mesh(protos[pid], tri), {"id": pid, "instances": {"height": [], "crown_diameter": []}}))
         idx = np.empty(len(trees), np.int32)
         mats = np.empty((len(trees), 4, 4))
-        for i, (tname, href, m, height, crown) in enumerate(trees):
+        for i, (tname, href, m, height, crown, _) in enumerate(trees):
             if href not in index:
                 raise SourceError(f"{path}: tree {i + 1} ({tname}) references unknown prototype '#{href}'")
             idx[i] = index[href]
@@ -210,7 +222,7 @@ def load_citygml(path) -> SourceScene:
             inst = models[index[href]].attributes["instances"]
             inst["height"].append(height)
             inst["crown_diameter"].append(crown)
-        instances = TreeInstances(idx, mats, [t[0] for t in trees])
+        instances = TreeInstances(idx, mats, [t[0] for t in trees], [t[5] for t in trees])
     if crs and "EPSG" in crs.upper():
         crs = "EPSG:" + crs.replace("::", ":").rsplit(":", 1)[-1]
     return SourceScene(objects=objects, tree_models=models, trees=instances, crs=crs, sources=[str(path)])
@@ -220,11 +232,13 @@ def _tree(e, path, i, protos, proto_order, trees, objects, tri) -> None:
     tname = e.get(_GML_ID) or f"tree{i + 1}"
     height = _float_or_none(_child(e, "height"))
     crown = _float_or_none(_child(e, "crownDiameter"))
+    scan = _generic(e, TREE_MODEL_ATTRIBUTE)  # a point-cloud file for this tree (server.scene.scans)
     implicit = next((c for c in e.iter() if _local(c.tag) == "ImplicitGeometry"), None)
     if implicit is None:  # explicit geometry: an ordinary object
         polys = _polygons(e, path, f"tree {i + 1} ({tname})")
         if polys:
-            objects.append(SourceObject(tname, "tree", [_mesh(polys, tri)], {"height": height, "crownDiameter": crown}))
+            objects.append(SourceObject(tname, "tree", [_mesh(polys, tri)], {"height": height, "crownDiameter": crown,
+                                                                               TREE_MODEL_ATTRIBUTE: scan}))
         return
     where = f"tree {i + 1} ({tname})"
     tm = _child(implicit, "transformationMatrix")
@@ -257,4 +271,4 @@ def _tree(e, path, i, protos, proto_order, trees, objects, tri) -> None:
         proto_order.append(href)
     t = np.eye(4)
     t[:3, 3] = ref
-    trees.append((tname, href, t @ m, height, crown))
+    trees.append((tname, href, t @ m, height, crown, scan))
