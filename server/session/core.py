@@ -48,7 +48,7 @@ from proto.codec import decode_client
 from proto.errors import ProtocolError
 from proto.manifest import unpack_held
 from proto.messages import ALGORITHMS, PROTOCOL_VERSION, Ack, Camera, Error, FrameReport, Hello, Ping, Pong, Pose
-from proto.messages import TourKey, Welcome
+from proto.messages import Heartbeat, TourKey, Welcome
 
 from .. import state as _blob
 from ..clock import ClockSync, Delivery
@@ -94,6 +94,7 @@ class Session:
         self.hello: Hello | None = None
         self.scene_name = ""
         self.camera: Camera | None = None
+        self.heartbeat: Heartbeat | None = None  # a kiosk's latest report (``server.fleet`` keeps the fleet)
         self.fence: str | None = None  # the token this session was resumed from (``StateStore.save``)
         # Counters for /sessions and the tests; ``seq`` numbers the deltas.
         self.seq = self.frames = self.errors = self.bytes_sent = self.teleports = self.acks = 0
@@ -178,6 +179,14 @@ class Session:
             # whatever the client's frame rate; a client clock that went back restarts the grid.
             self._observe_due = max(self._observe_due, message.t - period) + period
             self._observe(message)
+        return []
+
+    def _on_heartbeat(self, message: Heartbeat, now: float) -> list[BaseModel]:
+        # One session is one kiosk: a second id on it would make two fleet rows share one session's fate.
+        if self.heartbeat is not None and message.kiosk != self.heartbeat.kiosk:
+            raise ProtocolError("bad_state", f"this session reports kiosk {self.heartbeat.kiosk!r}; kiosk "
+                                             f"{message.kiosk!r} needs a session of its own")
+        self.heartbeat = message
         return []
 
     def _observe(self, report: FrameReport) -> None:
@@ -380,6 +389,7 @@ class Session:
             "state": self.state.value,
             "scene": self.scene_name,
             "solver": self.hello.solver if self.hello else "",
+            "kiosk": self.heartbeat.kiosk if self.heartbeat else "",
             "frames": self.frames,
             "selections": self.seq,
             "errors": self.errors,
@@ -542,4 +552,5 @@ _HANDLERS: dict[type, Callable[[Session, BaseModel, float], list[BaseModel]]] = 
     Pong: Session._on_pong,
     Ack: Session._on_ack,
     FrameReport: Session._on_frame_report,
+    Heartbeat: Session._on_heartbeat,
 }
