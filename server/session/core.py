@@ -238,7 +238,8 @@ class Session:
         budget = int(self.config.cache_bytes if hello.cache_bytes is None
                      else min(hello.cache_bytes, self.config.cache_bytes))
         if hello.predict:
-            turn = None if hello.max_turn is None else float(np.radians(hello.max_turn))
+            # A denormal limit in degrees underflows to 0 in radians: keep it the least positive turn rate.
+            turn = None if hello.max_turn is None else max(float(np.radians(hello.max_turn)), math.ulp(0.0))
             # Without a stated speed limit, a jump is a teleport only if it outruns the scene's own tour by 3×.
             teleport = max(200.0, 3.0 * tour_speed(index.tour)) if hello.max_speed is None else 200.0
             self.predictor = Predictor(MotionLimits(speed=hello.max_speed, turn=turn), teleport_speed=teleport)

@@ -312,3 +312,9 @@ def test_a_heartbeat_is_kept_after_hello_and_one_session_reports_one_kiosk(scene
     bad = msgpack.packb({"type": "heartbeat", "kiosk": "no spaces", "t": 3.0, "frames": 1})
     (invalid,) = _wire(s.receive(bad, now=3.0))
     assert invalid.code == "invalid" and "kiosk" in invalid.message and s.heartbeat.frames == 60
+
+
+def test_a_denormal_turn_limit_is_the_least_turn_not_a_failure(scenes):
+    s = Session(scenes, "s2")
+    welcome, _ = _wire(s.receive(_hello(scenes, max_turn=5e-324), now=0.0))
+    assert isinstance(welcome, Welcome) and s.predictor.limits.turn > 0.0
