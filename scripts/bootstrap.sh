@@ -18,8 +18,11 @@ ldconfig -p | grep -q 'libXtst\.so\.6' || need_apt+=(libxtst6)  # real X input e
 command -v redis-server >/dev/null 2>&1 || need_apt+=(redis-server)
 [ -x /usr/sbin/nginx ] || command -v nginx >/dev/null 2>&1 || need_apt+=(nginx-light)
 command -v ip >/dev/null 2>&1 || need_apt+=(iproute2)
+# The fleet page's browser test: Debian's chromium, headless, driven through chromedriver (selenium).
+[ -x /usr/bin/chromium ] || need_apt+=(chromium)
+[ -x /usr/bin/chromedriver ] || need_apt+=(chromium-driver)
 if [ ${#need_apt[@]} -gt 0 ]; then
-  echo "bootstrap: installing ${need_apt[*]} (Mesa EGL, Xvfb, Redis, nginx)" >&2
+  echo "bootstrap: installing ${need_apt[*]} (Mesa EGL, Xvfb, Redis, nginx, chromium)" >&2
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_apt[@]}" >/dev/null

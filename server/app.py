@@ -10,6 +10,9 @@ solve never stalls the event loop for the others. The loop awaits each send
 before it polls again: a client that does not read makes only its own session
 wait (uvicorn's send waits while the transport's buffer is full).
 
+Kiosks' heartbeats feed the fleet (``server.fleet``), shown at ``/fleet`` (HTML), ``/fleet.json`` and as
+per-kiosk gauges at ``/metrics``; like ``/sessions`` they cover every worker of the replica.
+
 Session state is saved to a ``StateStore`` after each delta, after acks that
 changed it (at most every ``ReplicaLimits.save_interval``) and on disconnect, so a
 client that lost its connection can resume on any replica sharing the store.
@@ -29,14 +32,18 @@ from contextlib import asynccontextmanager
 from typing import Callable, Mapping
 
 from fastapi import Depends, FastAPI, HTTPException, Request, Response, WebSocket
+from fastapi.responses import HTMLResponse, RedirectResponse
 from pydantic import BaseModel
 
 from proto.codec import decode_client, encode
 from proto.errors import ProtocolError
 from proto.messages import Delta, Error, Hello, Resume
 
+from .admin import VIEW_COOKIE, AdminAuth
 from .connection import CLOSE_POLICY, GONE, SOCKET_GONE, WAKE, Connection, error, read_frames
 from .fair import FairPool
+from .fleet import Fleet, merge
+from .fleet_page import render as render_fleet
 from .limits import MEASUREMENT_SOLVERS, WS_MAX_SIZE, Admission, RateGuard, ReplicaLimits, remote_address
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .peers import Peers
@@ -56,6 +63,8 @@ _TICK = object()
 
 #: Websocket close codes: normal, policy violation (flooding), try again later (busy).
 CLOSE_NORMAL, CLOSE_RESTART, CLOSE_BUSY = 1000, 1012, 1013
+#: Seconds between two reloads of the fleet page.
+FLEET_REFRESH = 3
 
 
 def create_app(
@@ -83,6 +92,13 @@ def create_app(
     conns: dict[str, Connection] = {}
     sessions: dict[str, Session] = {}  # the same, by session (tests and /sessions look here)
     metrics = Metrics(lambda: len(conns))
+    fleet = Fleet()
+    worker = os.getpid()
+
+    def kiosk_rows() -> list[dict]:
+        return [{**row, "worker": worker} for row in fleet.rows(time.monotonic())]
+    metrics.watch_fleet(kiosk_rows)
+    auth = AdminAuth(admin_token)
     admission = Admission(limits)
 
     def n_sessions() -> int:  # connections that said their hello: the ones holding a session slot
@@ -112,6 +128,7 @@ def create_app(
             yield
         finally:
             refresh.cancel()
+            metrics.close()
             for conn in list(conns.values()):
                 # Not "closed" (an administrator's end of the session): a client redials and resumes elsewhere.
                 conn.request_close("busy", CLOSE_RESTART, "the server is shutting down; reconnect to resume")
@@ -136,6 +153,7 @@ def create_app(
     app.state.pool = pool
     app.state.fair = fair
     app.state.ticker = ticker
+    app.state.fleet = fleet
 
     def register(conn: Connection) -> None:
         conns[conn.session.id] = conn
@@ -149,15 +167,7 @@ def create_app(
 
     # ------------------------------------------------------------------ REST
 
-    def require_admin(request: Request) -> None:
-        """Bearer-token check for the admin endpoints (constant-time compare)."""
-        if not admin_token:
-            raise HTTPException(403, "admin endpoints are disabled: start the server with --admin-token TOKEN "
-                                     "(or WALKSTREAM_ADMIN_TOKEN) to enable them")
-        scheme, _, given = request.headers.get("authorization", "").partition(" ")
-        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), admin_token.encode()):
-            raise HTTPException(401, "a valid 'Authorization: Bearer <admin token>' header is required",
-                                headers={"WWW-Authenticate": "Bearer"})
+    require_admin = auth.require
 
     @app.get("/health")
     async def health() -> dict:
@@ -217,6 +227,34 @@ def create_app(
         except asyncio.TimeoutError:  # stuck in a send to a client that does not read: keepalive ends it
             return {"session": session_id, "closed": False}
         return {"session": session_id, "closed": True}
+
+    async def fleet_data(local: bool) -> dict:
+        """This worker's kiosks and live sessions, and (unless ``local``) every other worker's, merged."""
+        now = time.monotonic()
+        keys = ("session", "kiosk", "scene", "state", "frames", "selections", "connected_s", "idle_s")
+        mine = {"kiosks": kiosk_rows(),
+                "sessions": [{**{k: info.get(k) for k in keys}, "worker": worker}
+                             for info in (c.info(now) for c in conns.values())
+                             if info.get("state") != SessionState.AWAIT_HELLO.value]}
+        parts = [mine]
+        if peers is not None and not local:
+            parts += [body for status, body in await peers.ask("GET", "/fleet.json", auth.peer_headers())
+                      if status == 200 and isinstance(body, dict)]
+        return merge(parts)
+
+    @app.get("/fleet.json", dependencies=[Depends(auth.require_view)], include_in_schema=False)
+    async def fleet_json(local: bool = False) -> dict:
+        return {"replica": replica, **await fleet_data(local)}
+
+    @app.get("/fleet", dependencies=[Depends(auth.require_view)], include_in_schema=False)
+    async def fleet_page(request: Request, local: bool = False) -> Response:
+        if auth.query_ok(request):  # from a typed URL: a cookie instead, and the token out of the address bar
+            back = RedirectResponse("fleet?local=1" if local else "fleet", status_code=303)
+            back.set_cookie(VIEW_COOKIE, auth.view_cookie(), max_age=12 * 3600, httponly=True, samesite="strict",
+                            secure=request.url.scheme == "https")
+            return back
+        page = render_fleet(await fleet_data(local), replica, FLEET_REFRESH)
+        return HTMLResponse(page, headers={"Cache-Control": "no-store"})
 
     # ------------------------------------------------------------------ state
 
@@ -447,6 +485,11 @@ def create_app(
                                                "refused frames on this connection; closing")
                     else:
                         conn.last_heard = max(conn.last_heard, t)
+                        beat = conn.session.heartbeat
+                        if beat is not None and beat is not conn.heartbeat:
+                            conn.heartbeat = beat
+                            metrics.heartbeats.inc()
+                            fleet.heard(conn.session.id, beat, t)
                 except SOCKET_GONE:
                     raise
                 except Exception:  # a bug of ours: log loudly, tell the client, keep the session
@@ -470,6 +513,8 @@ def create_app(
             finally:
                 session.close()
                 fair.forget(session.id)
+                if conns.get(session.id) is conn:  # not taken over by a newer connection, which reports it
+                    fleet.closed(session.id, time.monotonic())
                 unregister(conn)
                 conn.done.set()
 

@@ -190,7 +190,7 @@ def serve(
                                                         "one client can keep a CPU busy)"),
     docs: bool = typer.Option(False, "--docs", help="serve the interactive API docs at /docs (loads from a CDN)"),
 ) -> None:
-    """Serve scene stores over websockets at /ws (plus /health, /scenes, /metrics, and /sessions for admins)."""
+    """Serve scene stores over websockets at /ws (plus /health, /scenes, /metrics; /sessions and /fleet for admins)."""
     import os
 
     from server.startup import ServeError

@@ -59,6 +59,7 @@ class Connection:
         self.resumed = False
         self.refused_resume: str | None = None  # the scene of a session this connection could not resume into
         self.gone = False  # the reader saw the socket end but could not queue that
+        self.heartbeat = None  # the session's last heartbeat the fleet has been told of
 
     def request_close(self, code: str, close_code: int, message: str = "") -> None:
         """Ask the session loop to send ``Error(code)`` and close; it acts at its next wake."""

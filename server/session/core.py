@@ -48,7 +48,7 @@ from proto.codec import decode_client
 from proto.errors import ProtocolError
 from proto.manifest import unpack_held
 from proto.messages import ALGORITHMS, PROTOCOL_VERSION, Ack, Camera, Error, FrameReport, Hello, Ping, Pong, Pose
-from proto.messages import TourKey, Welcome
+from proto.messages import Heartbeat, TourKey, Welcome
 
 from .. import state as _blob
 from ..clock import ClockSync, Delivery
@@ -94,6 +94,7 @@ class Session:
         self.hello: Hello | None = None
         self.scene_name = ""
         self.camera: Camera | None = None
+        self.heartbeat: Heartbeat | None = None  # a kiosk's latest report (``server.fleet`` keeps the fleet)
         self.fence: str | None = None  # the token this session was resumed from (``StateStore.save``)
         # Counters for /sessions and the tests; ``seq`` numbers the deltas.
         self.seq = self.frames = self.errors = self.bytes_sent = self.teleports = self.acks = 0
@@ -180,6 +181,14 @@ class Session:
             self._observe(message)
         return []
 
+    def _on_heartbeat(self, message: Heartbeat, now: float) -> list[BaseModel]:
+        # One session is one kiosk: a second id on it would make two fleet rows share one session's fate.
+        if self.heartbeat is not None and message.kiosk != self.heartbeat.kiosk:
+            raise ProtocolError("bad_state", f"this session reports kiosk {self.heartbeat.kiosk!r}; kiosk "
+                                             f"{message.kiosk!r} needs a session of its own")
+        self.heartbeat = message
+        return []
+
     def _observe(self, report: FrameReport) -> None:
         """Fold one measured frame into the cost model, and the covered pixels into the fill estimate."""
         terms = report.terms
@@ -229,7 +238,8 @@ class Session:
         budget = int(self.config.cache_bytes if hello.cache_bytes is None
                      else min(hello.cache_bytes, self.config.cache_bytes))
         if hello.predict:
-            turn = None if hello.max_turn is None else float(np.radians(hello.max_turn))
+            # A denormal limit in degrees underflows to 0 in radians: keep it the least positive turn rate.
+            turn = None if hello.max_turn is None else max(float(np.radians(hello.max_turn)), math.ulp(0.0))
             # Without a stated speed limit, a jump is a teleport only if it outruns the scene's own tour by 3×.
             teleport = max(200.0, 3.0 * tour_speed(index.tour)) if hello.max_speed is None else 200.0
             self.predictor = Predictor(MotionLimits(speed=hello.max_speed, turn=turn), teleport_speed=teleport)
@@ -380,6 +390,7 @@ class Session:
             "state": self.state.value,
             "scene": self.scene_name,
             "solver": self.hello.solver if self.hello else "",
+            "kiosk": self.heartbeat.kiosk if self.heartbeat else "",
             "frames": self.frames,
             "selections": self.seq,
             "errors": self.errors,
@@ -542,4 +553,5 @@ _HANDLERS: dict[type, Callable[[Session, BaseModel, float], list[BaseModel]]] = 
     Pong: Session._on_pong,
     Ack: Session._on_ack,
     FrameReport: Session._on_frame_report,
+    Heartbeat: Session._on_heartbeat,
 }

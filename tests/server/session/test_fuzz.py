@@ -42,10 +42,13 @@ from proto.messages import (
     Delta,
     Error,
     FrameReport,
+    Heartbeat,
     Hello,
     Ping,
     Pong,
     Resume,
+    TourKey,
+    TourPlan,
     Welcome,
 )
 from server.scene.store import SceneStore
@@ -109,6 +112,11 @@ def seed_messages(index) -> list[dict]:
         Pong(id=2, sent=1.0, t=1.01),
         Ack(seq=1, t=0.3, rejected=[1, 2, 3], held=12, digest=digest(np.arange(12)), held_bytes=4096),
         Ack(seq=2, t=0.6),
+        Heartbeat(kiosk="hall-1.west", t=0.7, interval=5.0, state="visitor", frames=420, fps=59.9, frame_p95=0.021,
+                  recent=[0.016, 0.017, 0.03], rss=300 << 20, gpu_memory=64 << 20, cache_bytes=1 << 20, reconnects=2,
+                  tour="harbour", stop=3),
+        Heartbeat(kiosk="k", t=0.8, frames=0),
+        TourPlan(t=0.9, keys=[TourKey(t=1.0, **pose), TourKey(t=3.0, **pose)], tour="harbour"),
     ]
     return [m.model_dump(mode="python") for m in hellos + others]
 
@@ -720,6 +728,14 @@ FIELDS = {
                      "gpu_time": st.one_of(st.none(), st.floats(-1, 70)), "cpu_time": st.floats(-1, 70),
                      "terms": st.one_of(st.none(), _terms)},
     "pong": {"id": _count, "sent": st.one_of(st.floats(), st.integers(-(1 << 63), (1 << 63) - 1)), "t": _time},
+    "heartbeat": {"kiosk": st.one_of(st.from_regex(r"[A-Za-z0-9_.\-]{1,64}", fullmatch=True), st.text(max_size=70)),
+                  "t": _time, "interval": st.floats(0, 700), "frames": _count,
+                  "state": st.sampled_from(["attract", "visitor", "countdown", "closed", "reconnecting", "off", ""]),
+                  "fps": st.floats(-1, 2e4), "frame_p95": st.floats(-1, 70),
+                  "recent": st.lists(st.floats(-1, 70), max_size=125), "rss": st.integers(-1, (1 << 42) + 1),
+                  "gpu_memory": st.one_of(st.none(), st.integers(-1, (1 << 42) + 1)),
+                  "cache_bytes": st.integers(-1, (1 << 42) + 1), "reconnects": _count,
+                  "tour": st.text(max_size=130), "stop": st.integers(-2, (1 << 16) + 1)},
     "ack": {"seq": _count, "t": _time, "rejected": _ids, "held": st.integers(-3, (1 << 20) + 2),
             "digest": st.one_of(st.integers(0, (1 << 64) - 1), st.integers(-3, -1)), "held_bytes": _count},
 }

@@ -293,3 +293,28 @@ def test_the_clients_own_measure_of_a_vertex_is_the_cost_models_first_guess(scen
     assert drawn[1] < 0.4 * drawn[0], drawn
     with pytest.raises(ValidationError, match="c_vertex"):
         Hello(protocol=PROTOCOL_VERSION, scene="demo", viewport=[64, 64], c_vertex=1.0)  # a second a vertex
+
+
+def test_a_heartbeat_is_kept_after_hello_and_one_session_reports_one_kiosk(scenes):
+    from proto.messages import Heartbeat
+
+    early = Session(scenes, "s0")
+    (refused,) = _wire(early.receive(encode(Heartbeat(kiosk="hall-1", t=0.0, frames=0)), now=0.0))
+    assert isinstance(refused, Error) and refused.code == "bad_state" and early.heartbeat is None
+    s = _open(scenes)
+    progress = s._progress()
+    assert s.receive(encode(Heartbeat(kiosk="hall-1", t=1.0, frames=60, tour="harbour", stop=2)), now=1.0) == []
+    assert s.heartbeat.frames == 60 and s.heartbeat.tour == "harbour" and s.stats["kiosk"] == "hall-1"
+    assert s._progress() == progress  # a heartbeat is no state a resume needs
+    (other,) = _wire(s.receive(encode(Heartbeat(kiosk="hall-2", t=2.0, frames=120)), now=2.0))
+    assert isinstance(other, Error) and other.code == "bad_state" and "hall-2" in other.message
+    assert s.heartbeat.kiosk == "hall-1" and s.heartbeat.frames == 60
+    bad = msgpack.packb({"type": "heartbeat", "kiosk": "no spaces", "t": 3.0, "frames": 1})
+    (invalid,) = _wire(s.receive(bad, now=3.0))
+    assert invalid.code == "invalid" and "kiosk" in invalid.message and s.heartbeat.frames == 60
+
+
+def test_a_denormal_turn_limit_is_the_least_turn_not_a_failure(scenes):
+    s = Session(scenes, "s2")
+    welcome, _ = _wire(s.receive(_hello(scenes, max_turn=5e-324), now=0.0))
+    assert isinstance(welcome, Welcome) and s.predictor.limits.turn > 0.0
