@@ -255,7 +255,7 @@ class Backoff:
     def wait(self, round: int) -> float:
         """Seconds to wait before ``round``: a draw from [step/2, step]."""
         d = self.step(round)
-        return d * (0.5 + 0.5 * self.random())
+        return d * (0.5 + 0.5 * self.random()) if d else 0.0
 
 
 class _OutOfPatience(ClientError):
