@@ -18,6 +18,8 @@ ldconfig -p | grep -q 'libXtst\.so\.6' || need_apt+=(libxtst6)  # real X input e
 command -v redis-server >/dev/null 2>&1 || need_apt+=(redis-server)
 [ -x /usr/sbin/nginx ] || command -v nginx >/dev/null 2>&1 || need_apt+=(nginx-light)
 command -v ip >/dev/null 2>&1 || need_apt+=(iproute2)
+# systemd-analyze checks the kiosk's unit (deploy/walkstream-kiosk.service) in its test.
+command -v systemd-analyze >/dev/null 2>&1 || need_apt+=(systemd)
 if [ ${#need_apt[@]} -gt 0 ]; then
   echo "bootstrap: installing ${need_apt[*]} (Mesa EGL, Xvfb, Redis, nginx)" >&2
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
