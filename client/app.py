@@ -29,7 +29,7 @@ from typing import Callable, Sequence
 from proto.messages import ALGORITHMS, PROTOCOL_VERSION, Error, Hello
 from proto.tour import Tour
 
-from .connection import Arrived, Item, Link, Redialled, open_patiently, with_client
+from .connection import Arrived, Item, Link, Redialled, as_urls, open_patiently, with_client
 from .frame_loop import FrameLoop, quiet_collector, run_frames
 from .calibrate import renderer_c_vertex
 from .governor import Governor
@@ -44,7 +44,7 @@ CLIENT_NAME = "walkstream-client/0.1"
 
 
 def run_client(
-    url: str,
+    url: str | Sequence[str],
     scene: str,
     *,
     duration: float,
@@ -73,6 +73,8 @@ def run_client(
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
+    ``url`` is the server's websocket, or several servers' (tried in turn, on the
+    first connect and on every redial; ``client.connection``).
     ``max_fps`` paces frames like a display's refresh would (None: as fast as
     possible); ``timeout`` bounds connecting and waiting for the welcome.
     ``predict`` and ``morph`` ask the server for path prediction and geomorphing;
@@ -83,7 +85,7 @@ def run_client(
     whose limits go out in the ``Hello``). ``false_colour`` sets ``Renderer.false_colour``.
     ``algorithms`` are the rendering algorithms offered to the selection (``proto.messages.ALGORITHMS``);
     ``cache_bytes`` is the client cache's budget (payload bytes), kept by both ends.
-    A lost connection is redialled for up to ``reconnect_timeout`` s (0: never; the run
+    A lost connection is redialled for up to ``reconnect_timeout`` s (0: never; ``math.inf``: for ever; the run
     then ends with a ``connection_lost`` error), resuming the session by its token with
     the cache's held manifest, while frames go on from what is resident; a link
     silent for ``silence_timeout`` s (None: no limit) counts as lost. A ``busy`` server
@@ -103,6 +105,7 @@ def run_client(
         raise ValueError("interactive navigation (fly, walk) needs window=True")
     if tour is not None and navigate != "tour":
         raise ValueError("a tour and interactive navigation exclude each other")
+    urls = as_urls(url)  # raises ValueError now on an empty list
     if tour is not None:
         tour = list(tour)
         Tour(tour)  # raises ValueError now, before connecting, on a malformed tour
@@ -127,7 +130,7 @@ def run_client(
         view.controller = navigator
     start = time.monotonic()  # the client clock: every t is seconds since here
     client_id = uuid.uuid4().hex
-    url = with_client(url, client_id)
+    urls = tuple(with_client(u, client_id) for u in urls)
     loop: FrameLoop | None = None
     try:
         hello = Hello(
@@ -136,12 +139,13 @@ def run_client(
             algorithms=list(algorithms), cache_bytes=cache_bytes, governor=governor,
             c_vertex=renderer_c_vertex(renderer) if calibrate else None, **limits,
         )
-        ws, welcome, nbytes, attempts = open_patiently(url, hello, timeout, max(0.0, reconnect_timeout))
-        link = Link(url, hello, start, timeout=timeout, patience=reconnect_timeout, silence=silence_timeout)
-        run = ClientRun(welcome=welcome, client_id=client_id, attempts=attempts)
+        opened = open_patiently(urls, hello, timeout, max(0.0, reconnect_timeout))
+        link = Link(urls, hello, start, timeout=timeout, patience=reconnect_timeout, silence=silence_timeout)
+        run = ClientRun(welcome=opened.welcome, client_id=client_id, attempts=opened.attempts, url=opened.url)
         inbox: queue.Queue[Item] = queue.Queue()
-        link.attach(ws, welcome, nbytes, inbox)
-        loop = FrameLoop(run, renderer, inbox, ws, cache_bytes=cache_bytes, link=link, start=start)
+        link.attach(opened.ws, opened.welcome, opened.nbytes, inbox, url=opened.url)
+        welcome = opened.welcome
+        loop = FrameLoop(run, renderer, inbox, opened.ws, cache_bytes=cache_bytes, link=link, start=start)
         if governor:
             loop.governor = Governor(target_frame_time)
         try:

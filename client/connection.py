@@ -8,21 +8,32 @@ is applied. It ends with a ``Closed``.
 
 A lost connection does not end the run: while the frame loop keeps drawing
 what is resident, ``Link.redial`` starts a background thread that reconnects
-(backoff 50 ms → 500 ms, for at most ``reconnect_timeout`` s) with a hello that
-resumes the session by its token and carries the held manifest
-(``proto.manifest.pack_held``), so the server sends nothing the cache already
-holds; it reports a ``Redialled`` or a ``GaveUp`` on the same queue. The run's
-client id goes in the URL's query (``with_client``) so a load balancer hashing
-on it keeps the client on one replica.
+with a hello that resumes the session by its token and carries the held
+manifest (``proto.manifest.pack_held``), so the server sends nothing the cache
+already holds; it reports a ``Redialled`` or a ``GaveUp`` on the same queue.
+
+A run may name several server URLs. Dialling goes in rounds: each round tries
+every URL once, in turn, starting with the one last connected to (a blip of
+the network finds the session where it was; a dead server refuses at once and
+the next URL is tried without waiting); between rounds it waits a ``Backoff``
+— exponential, capped, jittered so that a fleet of kiosks cut off together
+does not redial in step. A server that shares session state (Redis) resumes
+the session; one that does not know it starts a fresh one that adopts the
+held manifest — either way nothing held is sent again. ``patience`` may be
+infinite: a kiosk never gives up. The run's client id goes in each URL's query
+(``with_client``) so a load balancer hashing on it keeps the client on one
+replica.
 """
 
 from __future__ import annotations
 
+import math
 import queue
+import random
 import threading
 import time
 from dataclasses import dataclass
-from typing import Union
+from typing import Callable, Sequence, Union
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 import numpy as np
@@ -34,11 +45,13 @@ from proto.errors import ProtocolError
 from proto.manifest import pack_held
 from proto.messages import MAX_HELD_BYTES, PROTOCOL_VERSION, Delta, Error, Hello, Ping, Pong, Resume, Welcome
 
-__all__ = ["ClientError", "Arrived", "Closed", "Redialled", "GaveUp", "Item", "Link", "open_patiently",
-           "with_client", "BACKOFF", "CLOSE_TIMEOUT", "FINAL_CODES"]
+__all__ = ["ClientError", "Arrived", "Closed", "Redialled", "GaveUp", "Item", "Link", "Backoff", "open_patiently",
+           "with_client", "as_urls", "BACKOFF", "CLOSE_TIMEOUT", "FINAL_CODES"]
 
-#: Redial backoff: the first retry after 50 ms, doubling to at most 500 ms.
-BACKOFF = (0.05, 0.5)
+#: Redial backoff between rounds of dialling: the first after 50 ms, doubling to at most 4 s. The cap bounds
+#: how long a kiosk stays dark to a server that is back: the next round starts at most this long after it
+#: returns, so deltas flow again within about 5 s of a network's return.
+BACKOFF = (0.05, 4.0)
 #: Seconds a close handshake may take; a lost link must not hold the client up for longer.
 CLOSE_TIMEOUT = 2.0
 #: Refusals no retry can change: a resume is not attempted again after one of these.
@@ -67,12 +80,13 @@ class Arrived:
 
 @dataclass(frozen=True)
 class Redialled:
-    """The reconnector's success: a welcomed websocket, ready for a receiver thread."""
+    """A dial's success: a welcomed websocket, ready for a receiver thread; ``url`` is the server that answered."""
 
     ws: ClientConnection
     welcome: Welcome
     nbytes: int
     attempts: int
+    url: str = ""
 
 
 @dataclass(frozen=True)
@@ -207,74 +221,174 @@ def _open(url: str, hello: Hello, timeout: float) -> tuple[ClientConnection, Wel
     return ws, welcome, nbytes
 
 
-def open_patiently(url: str, hello: Hello, timeout: float,
-                    patience: float) -> tuple[ClientConnection, Welcome, int, int]:
-    """``_open``, retried with backoff for up to ``patience`` s while the server answers ``busy``; + attempts made."""
+def as_urls(urls: str | Sequence[str]) -> tuple[str, ...]:
+    """One URL or several, as a non-empty tuple (``ValueError`` when there is none)."""
+    out = (urls,) if isinstance(urls, str) else tuple(urls)
+    if not out or not all(isinstance(u, str) and u for u in out):
+        raise ValueError(f"urls: give one server URL or a non-empty list of them, got {urls!r}")
+    return out
+
+
+class Backoff:
+    """How long to wait before each round of dialling: exponential, capped, jittered.
+
+    Round 0 starts at once; before round ``r`` ≥ 1 the wait is drawn uniformly
+    from [d/2, d] with d = min(cap, base · 2^(r−1)) ("equal jitter": never less
+    than half the step, so a fleet spreads out without hammering). ``random``
+    returns floats in [0, 1) — injected so tests can pin the draws.
+    """
+
+    def __init__(self, base: float = BACKOFF[0], cap: float = BACKOFF[1],
+                 random: Callable[[], float] = random.random) -> None:
+        if not (math.isfinite(base) and base > 0):
+            raise ValueError(f"base: must be a positive number of seconds, got {base!r}")
+        if not (math.isfinite(cap) and cap >= base):
+            raise ValueError(f"cap: must be a number of seconds ≥ base ({base:g}), got {cap!r}")
+        self.base, self.cap, self.random = base, cap, random
+
+    def step(self, round: int) -> float:
+        """The un-jittered wait before ``round`` (0 for round 0)."""
+        if round <= 0:
+            return 0.0
+        return min(self.cap, self.base * 2.0 ** min(round - 1, 64))
+
+    def wait(self, round: int) -> float:
+        """Seconds to wait before ``round``: a draw from [step/2, step]."""
+        d = self.step(round)
+        return d * (0.5 + 0.5 * self.random()) if d else 0.0
+
+
+class _OutOfPatience(ClientError):
+    """No server welcomed the hello within the patience (or the dial was stopped)."""
+
+
+def _dial(urls: tuple[str, ...], first: int, hello: Hello, timeout: float, patience: float, backoff: Backoff,
+          stop: threading.Event, *, wait_unreachable: bool, final: Callable[[str], bool],
+          on_attempt: Callable[[str, int], None] | None = None) -> Redialled:
+    """Dial ``urls`` in rounds (each from ``urls[first]``, in turn) until one welcomes ``hello``.
+
+    A ``busy`` answer, an unreachable server (when ``wait_unreachable``) or a
+    ``bad_held`` (the hello is sent on without its manifest) move on to the next
+    URL; a refusal whose code is ``final`` takes that URL out of the rotation,
+    and raises ``_Refused`` once no URL is left — at once for ``closed``: an
+    administrator ended the session on purpose. Raises ``_OutOfPatience`` when
+    the next round would start after ``patience`` s (or ``stop`` is set), and,
+    without ``wait_unreachable``, ``ClientError`` after a round in which no
+    server answered at all.
+    """
     deadline = time.monotonic() + patience
-    delay, attempts = BACKOFF[0], 0
-    while True:
-        attempts += 1
-        try:
-            return (*_open(url, hello, timeout), attempts)
-        except _Refused as exc:
-            if exc.error.code != "busy" or time.monotonic() + delay > deadline:
-                raise
-        time.sleep(delay)  # backoff before the next attempt, not synchronisation
-        delay = min(2 * delay, BACKOFF[1])
+    n = len(urls)
+    order = [(first + k) % n for k in range(n)]
+    out: set[int] = set()  # URLs whose refusal no retry can change
+    attempts, rnd, last = 0, 0, "no attempt made"
+    while not stop.is_set():
+        answered = False
+        for i in order:
+            if i in out or stop.is_set():
+                continue
+            attempts += 1
+            if on_attempt is not None:
+                on_attempt(urls[i], attempts)
+            left = deadline - time.monotonic()
+            try:
+                ws, welcome, nbytes = _open(urls[i], hello, max(0.05, min(timeout, left)))
+            except _Refused as exc:
+                answered = True
+                code = exc.error.code
+                if code == "closed":
+                    raise
+                if code == "bad_held" and hello.held is not None:
+                    hello = hello.model_copy(update={"held": None})  # resume without it rather than not at all
+                elif code != "busy" and final(code):
+                    out.add(i)
+                    if len(out) == n:
+                        raise
+                last = f"{urls[i]}: {exc}"
+            except ClientError as exc:
+                last = str(exc)
+            except Exception as exc:  # a local bug must still end the wait
+                last = f"{urls[i]}: {type(exc).__name__}: {exc}"
+            else:
+                if stop.is_set():
+                    ws.close_socket()
+                    break
+                return Redialled(ws, welcome, nbytes, attempts, urls[i])
+        if stop.is_set():
+            break
+        if not answered and not wait_unreachable:
+            raise ClientError(last)
+        rnd += 1
+        delay = backoff.wait(rnd)
+        if time.monotonic() + delay >= deadline:
+            raise _OutOfPatience(f"no server welcomed the session within {patience:g} s "
+                                 f"({attempts} attempts); last: {last}")
+        stop.wait(delay)
+    raise _OutOfPatience(f"stopped after {attempts} attempts; last: {last}")
 
 
-def _redial(url: str, hello: Hello, timeout: float, patience: float, inbox: "queue.Queue[Item]",
-            stop: threading.Event) -> None:
-    """Background thread: reconnect with ``hello`` (backoff 50 → 500 ms) until welcomed or ``patience`` s pass.
+def open_patiently(urls: str | Sequence[str], hello: Hello, timeout: float, patience: float, *,
+                   wait_unreachable: bool = False, backoff: Backoff | None = None,
+                   stop: threading.Event | None = None,
+                   on_attempt: Callable[[str, int], None] | None = None) -> Redialled:
+    """Open the session on the first of ``urls`` to welcome ``hello``, dialling in rounds for up to ``patience`` s.
+
+    A ``busy`` server is retried (after the others) with ``backoff`` between
+    rounds; any other refusal is final for that server; an unreachable one is passed over, and a round in which no server
+    answered raises ``ClientError`` — unless ``wait_unreachable`` (a kiosk that
+    boots before its server), which keeps dialling. ``patience`` may be
+    ``math.inf``; ``stop`` ends such a wait (``ClientError``). ``on_attempt(url,
+    attempts)`` is called before each dial (e.g. to tell systemd the start is
+    still going). Returns the welcomed connection, how many dials it took and
+    which URL answered.
+    """
+    try:
+        return _dial(as_urls(urls), 0, hello, timeout, patience, backoff or Backoff(), stop or threading.Event(),
+                     wait_unreachable=wait_unreachable, final=lambda code: True, on_attempt=on_attempt)
+    except _OutOfPatience as exc:
+        raise ClientError(str(exc)) from None
+
+
+def _redial(urls: tuple[str, ...], first: int, hello: Hello, timeout: float, patience: float, backoff: Backoff,
+            inbox: "queue.Queue[Item]", stop: threading.Event) -> None:
+    """Background thread: ``_dial`` with ``hello`` until welcomed, every URL in turn, for ``patience`` s.
 
     Puts one ``Redialled`` or ``GaveUp`` on ``inbox`` — nothing if ``stop`` is
     set first (the run ended; a socket won meanwhile is closed here).
     """
-    deadline = time.monotonic() + patience
-    delay, attempts, last = BACKOFF[0], 0, "no attempt made"
-    while not stop.is_set():
-        attempts += 1
-        try:
-            ws, welcome, nbytes = _open(url, hello, max(0.05, min(timeout, deadline - time.monotonic())))
-        except _Refused as exc:
-            if exc.error.code == "closed":
-                inbox.put(GaveUp(f"the server closed the session: {exc.error.message}", None))
-                return
-            if exc.error.code == "bad_held" and hello.held is not None:
-                hello = hello.model_copy(update={"held": None})  # resume without it rather than not at all
-            elif exc.error.code in FINAL_CODES:
-                inbox.put(GaveUp(f"cannot resume: {exc}", exc.error))
-                return
-            last = str(exc)
-        except ClientError as exc:
-            last = str(exc)
-        except Exception as exc:  # a local bug must still end the wait
-            last = f"{type(exc).__name__}: {exc}"
+    try:
+        won = _dial(urls, first, hello, timeout, patience, backoff, stop, wait_unreachable=True,
+                    final=FINAL_CODES.__contains__)
+    except _Refused as exc:
+        if exc.error.code == "closed":
+            inbox.put(GaveUp(f"the server closed the session: {exc.error.message}", None))
         else:
-            if stop.is_set():
-                ws.close_socket()
-                return
-            inbox.put(Redialled(ws, welcome, nbytes, attempts))
-            return
-        if time.monotonic() + delay >= deadline:
-            message = f"could not reconnect within {patience:g} s ({attempts} attempts); last: {last}"
+            inbox.put(GaveUp(f"cannot resume: {exc}", exc.error))
+        return
+    except ClientError as exc:
+        if not stop.is_set():
+            message = f"could not reconnect: {exc}"
             inbox.put(GaveUp(message, Error(code="connection_lost", message=message[:4096])))
-            return
-        stop.wait(delay)
-        delay = min(2 * delay, BACKOFF[1])
+        return
+    inbox.put(won)
 
 
 class Link:
     """The connection side of a run: the current websocket and its receiver, and how to get another.
 
-    ``hello`` is the run's first hello; a redial adds ``resume`` (the session and
-    token of the last welcome) and ``held``. ``patience`` is ``reconnect_timeout``.
+    ``urls`` are the servers to dial, in turn (one URL or several); ``url`` is
+    the one the current (or last) connection went to. ``hello`` is the run's
+    first hello; a redial adds ``resume`` (the session and token of the last
+    welcome) and ``held``. ``patience`` is ``reconnect_timeout`` (``math.inf``:
+    never give up); ``backoff`` spaces the rounds of redialling.
     """
 
-    def __init__(self, url: str, hello: Hello, start: float, *, timeout: float, patience: float,
-                 silence: float | None) -> None:
-        self.url, self.hello, self.start = url, hello, start
+    def __init__(self, urls: str | Sequence[str], hello: Hello, start: float, *, timeout: float, patience: float,
+                 silence: float | None, backoff: Backoff | None = None) -> None:
+        self.urls = as_urls(urls)
+        self.current = 0  # index in ``urls`` of the current (or last) connection's server
+        self.hello, self.start = hello, start
         self.timeout, self.patience, self.silence = timeout, patience, silence
+        self.backoff = backoff or Backoff()
         self.ws: ClientConnection | None = None
         self.welcome: Welcome | None = None
         self.counter = [0, 0, 0]  # bytes received, pings answered and deltas received on the current connection
@@ -285,8 +399,15 @@ class Link:
         self.reason = ""
         self.held = 0  # representations the pending redial's manifest names
 
-    def attach(self, ws: ClientConnection, welcome: Welcome, nbytes: int, inbox: "queue.Queue[Item]") -> None:
-        """Make ``ws`` the current connection and start its receiver."""
+    @property
+    def url(self) -> str:
+        return self.urls[self.current]
+
+    def attach(self, ws: ClientConnection, welcome: Welcome, nbytes: int, inbox: "queue.Queue[Item]",
+               url: str | None = None) -> None:
+        """Make ``ws`` (a connection to ``url``, one of ``urls``) the current connection and start its receiver."""
+        if url is not None:
+            self.current = self.urls.index(url)
         self.ws, self.welcome, self.counter = ws, welcome, [nbytes, 0, 0]
         self.receiver = threading.Thread(target=_receive, args=(ws, inbox, self.counter, self.start, self.silence),
                                          name="ws-receive", daemon=True)
@@ -297,7 +418,10 @@ class Link:
         return self.patience > 0 and self.welcome is not None and bool(self.welcome.token)
 
     def redial(self, held: np.ndarray, now: float, reason: str, inbox: "queue.Queue[Item]") -> None:
-        """Start the background redial, resuming the last welcome's session with ``held`` as the manifest."""
+        """Start the background redial, resuming the last welcome's session with ``held`` as the manifest.
+
+        It dials the last server first, then the others in turn.
+        """
         assert self.welcome is not None
         self.lost_at, self.reason, self.ws = now, reason, None
         blob = pack_held(held)
@@ -307,8 +431,9 @@ class Link:
             "held": blob if self.held or held.size == 0 else None,
         })
         self.stop.clear()
-        self.redialler = threading.Thread(target=_redial, args=(self.url, hello, self.timeout, self.patience, inbox,
-                                                                self.stop), name="ws-redial", daemon=True)
+        self.redialler = threading.Thread(target=_redial, args=(self.urls, self.current, hello, self.timeout,
+                                                                self.patience, self.backoff, inbox, self.stop),
+                                          name="ws-redial", daemon=True)
         self.redialler.start()
 
     def close(self) -> None:

@@ -173,8 +173,8 @@ class FrameLoop:
         w = item.welcome
         self.run.reconnects.append(Reconnect(
             lost_at=link.lost_at, resumed_at=time.monotonic() - self.start, resumed=w.resumed, held=link.held,
-            welcome_held=w.held, session=w.session, attempts=item.attempts, reason=link.reason))
-        link.attach(item.ws, w, item.nbytes, self.inbox)
+            welcome_held=w.held, session=w.session, attempts=item.attempts, reason=link.reason, url=item.url))
+        link.attach(item.ws, w, item.nbytes, self.inbox, url=item.url or None)
         self.ws = item.ws
 
     def _schedule(self, delta: Delta, arrived: float) -> None:

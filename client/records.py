@@ -77,6 +77,7 @@ class Reconnect:
 
     resumed : the server continued the old session (False: a fresh session that adopted the held manifest)
     held : representations the hello's held manifest named; welcome_held : how many the server took as held
+    attempts : dials it took (over every URL); url : the server that welcomed the redial
     """
 
     lost_at: float
@@ -87,6 +88,7 @@ class Reconnect:
     session: str = ""
     attempts: int = 1
     reason: str = ""
+    url: str = ""
 
 
 @dataclass
@@ -109,6 +111,7 @@ class ClientRun:
     bytes_per_connection : bytes received over each connection, in order (their sum is ``bytes_received``)
     deltas_per_connection : deltas received over each connection, in order
     attempts : hellos it took to open the session (more than one when the server was ``busy``)
+    url : the server that welcomed the first connection (with the client id in its query)
     governor : with the frame governor, its predictors' held-out errors and the one in force
         (``FramePredictor.report``); None without
     """
@@ -135,3 +138,4 @@ class ClientRun:
     deltas_per_connection: list[int] = field(default_factory=list)
     attempts: int = 1
     governor: dict | None = None
+    url: str = ""

@@ -21,8 +21,10 @@ command -v ip >/dev/null 2>&1 || need_apt+=(iproute2)
 # The fleet page's browser test: Debian's chromium, headless, driven through chromedriver (selenium).
 [ -x /usr/bin/chromium ] || need_apt+=(chromium)
 [ -x /usr/bin/chromedriver ] || need_apt+=(chromium-driver)
+# systemd-analyze checks the kiosk's unit (deploy/walkstream-kiosk.service) in its test.
+command -v systemd-analyze >/dev/null 2>&1 || need_apt+=(systemd)
 if [ ${#need_apt[@]} -gt 0 ]; then
-  echo "bootstrap: installing ${need_apt[*]} (Mesa EGL, Xvfb, Redis, nginx, chromium)" >&2
+  echo "bootstrap: installing ${need_apt[*]} (Mesa EGL, Xvfb, Redis, nginx, chromium, systemd)" >&2
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_apt[@]}" >/dev/null
