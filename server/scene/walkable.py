@@ -11,9 +11,10 @@ than ``MAX_SLOPE_DEG`` (a floor, a seating tier, a stage) — that has headroom:
 
 - no geometry between ``STEP`` and ``CLEARANCE`` above it (a chair, a wall, a
   low ceiling): a kerb or a riser lower than ``STEP`` is climbed;
-- not inside a solid: counted from above, the column crosses each object's
-  surface an even number of times above the headroom (an odd count means the
-  headroom lies inside a building or a wall box, whatever its winding).
+- not inside a solid, at the feet or in the headroom: counted from above, the
+  column crosses each object's surface an even number of times above that
+  height (an odd count means it lies inside a building, a wall box or a kerb,
+  whatever the winding).
 
 A scene without terrain or ground surfaces gets a virtual ground at the lowest
 geometry of the nearest covered cell (the footprints' ground height), where no
@@ -71,6 +72,9 @@ _STEEP = 0.5
 #: Sample points sit this far (in cells) off the centre: a generic offset, so that no sample falls on the
 #: axis-aligned and diagonal edges that boxes put at round coordinates.
 _JITTER = np.array([0.0012345, 0.0006789])
+#: Where the feet are (m above a candidate): ground covered by a solid there (a kerb, a tier, a floor slab) is
+#: not stood on; the solid's top is.
+_FOOT = 0.05
 #: Fragments made per rasterisation pass (bounds the working memory).
 _CHUNK = 1 << 22
 #: Triangles decoded per batch of representations.
@@ -204,7 +208,8 @@ class _Fragments:
     def __init__(self) -> None:
         self.solid: list[tuple] = []  # (cell, object, z): surface crossings of non-ground objects
         self.walls: list[tuple] = []  # (cell, lo, hi): height ranges of walls and trunks over the cells they cross
-        self.candidates: list[tuple] = []  # (cell, z): where ground may be
+        self.candidates: list[tuple] = []  # (cell, z): faces flat enough to stand on
+        self.ground: list[tuple] = []  # (cell, z): terrain and ground surfaces (their top is a candidate)
 
     @staticmethod
     def join(parts: list[tuple], n: int) -> list[np.ndarray]:
@@ -225,9 +230,10 @@ def _rasterise(store: _Store, raster: _Raster, reps: np.ndarray, ground: np.ndar
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         nz = np.abs(normal[:, 2]) / np.maximum(np.linalg.norm(normal, axis=1), 1e-300)
         cell, z, t = raster.centres(tri)
-        flat = is_ground[t] | (nz[t] >= _FLAT)
-        frags.candidates.append((cell[flat], z[flat]))
         solid = ~is_ground[t]
+        flat = solid & (nz[t] >= _FLAT)
+        frags.candidates.append((cell[flat], z[flat]))
+        frags.ground.append((cell[~solid], z[~solid]))
         frags.solid.append((cell[solid], obj[t[solid]], z[solid]))
         steep = np.flatnonzero((nz < _STEEP) & ~is_ground)
         if steep.size:
@@ -299,8 +305,10 @@ def _headroom(cell: np.ndarray, z: np.ndarray, frags: _Fragments, zref: float, s
     bare = np.flatnonzero(last & (rank % 2 == 0))
     in_lo = np.sort(np.concatenate([_keys(c[odd], zz[odd], zref, span), _keys(c[bare], np.full(bare.size, zref), zref, span)]))
     in_hi = np.sort(np.concatenate([_keys(c[odd], zz[odd - 1], zref, span), _keys(c[bare], zz[bare], zref, span)]))
-    q = _keys(cell, z + 0.5 * (STEP + CLEARANCE), zref, span)
-    inside = np.searchsorted(in_lo, q, side="left") - np.searchsorted(in_hi, q, side="right") > 0
+    inside = np.zeros(cell.size, bool)
+    for above in (_FOOT, 0.5 * (STEP + CLEARANCE)):  # the feet (not under a kerb or a floor), the body
+        q = _keys(cell, z + above, zref, span)
+        inside |= np.searchsorted(in_lo, q, side="left") - np.searchsorted(in_hi, q, side="right") > 0
     return free & ~inside
 
 
@@ -348,6 +356,12 @@ def walkable_grid(store: _Store, cell: float | None = None) -> WalkableGrid:
     _rasterise(store, raster, reps, ground, frags)
     _trees(store, raster, frags)
     cand_cell, cand_z = _Fragments.join(frags.candidates, 2)
+    g_cell, g_z = _Fragments.join(frags.ground, 2)
+    if g_cell.size:  # a ground surface is a height field: its top in each cell (a closed tile's bottom is not)
+        top = np.full(raster.nx * raster.ny, -np.inf)
+        np.maximum.at(top, g_cell.astype(np.int64), g_z)
+        on = np.flatnonzero(np.isfinite(top))
+        cand_cell, cand_z = np.concatenate([cand_cell, on]), np.concatenate([cand_z, top[on]])
     has_ground = bool(ground.any())
     if not has_ground:
         s_cell, _, s_z = _Fragments.join(frags.solid, 3)
