@@ -183,3 +183,22 @@ def test_every_walkable_cell_is_finite_in_range_and_never_inside_an_obstacle(tmp
         in_headroom = (z0 <= g + CLEARANCE - tol) & (z0 + h > g + STEP + tol)
         at_feet = (z0 < g + 0.05 - tol) & (z0 + h > g + 0.05 + tol)  # standing inside the box
         assert not (over & (in_headroom | at_feet)).any()
+
+
+def test_a_walk_path_goes_round_a_wall_and_never_through_it():
+    from proto.walkable import WalkableGrid
+    from server.scene.walkpath import NoPath, largest_region, walk_path
+
+    ground = np.zeros((40, 40), np.float32)
+    ground[:30, 20] = np.nan  # a wall from y = 0 to 15 at x = 10
+    grid = WalkableGrid(origin=(0.0, 0.0), cell=0.5, ground=ground)
+    path = walk_path(grid, (2.0, 2.0), (18.0, 2.0))
+    assert np.allclose(path[0], [2, 2]) and np.allclose(path[-1], [18, 2])
+    s = np.linspace(0.0, 1.0, 400)[:, None]
+    for a, b in zip(path[:-1], path[1:]):
+        assert grid.walkable(a + s * (b - a)).all()
+    assert path[:, 1].max() >= 15.0  # round the wall's end
+    assert largest_region(grid).sum() == np.isfinite(ground).sum()
+    ground[:, 20] = np.nan  # the wall now splits the floor
+    with pytest.raises(NoPath, match="different regions"):
+        walk_path(WalkableGrid(origin=(0.0, 0.0), cell=0.5, ground=ground), (2.0, 2.0), (18.0, 2.0))
