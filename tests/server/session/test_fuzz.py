@@ -42,10 +42,14 @@ from proto.messages import (
     Delta,
     Error,
     FrameReport,
+    Heartbeat,
     Hello,
+    Navigation,
     Ping,
     Pong,
     Resume,
+    TourKey,
+    TourPlan,
     Welcome,
 )
 from server.scene.store import SceneStore
@@ -109,7 +113,13 @@ def seed_messages(index) -> list[dict]:
         Pong(id=2, sent=1.0, t=1.01),
         Ack(seq=1, t=0.3, rejected=[1, 2, 3], held=12, digest=digest(np.arange(12)), held_bytes=4096),
         Ack(seq=2, t=0.6),
+        TourPlan(t=0.2, keys=[TourKey(t=0.2, **pose), TourKey(t=5.0, **pose)], tour="fuzz"),
+        TourPlan(t=0.4, keys=[]),
+        Heartbeat(kiosk="k1", t=1.0, frames=60, fps=60.0, frame_p95=0.02, recent=[0.016, 0.017]),
     ]
+    hellos.append(Hello(protocol=PROTOCOL_VERSION, scene=index.name, viewport=[320, 200], walkable=True,
+                        navigation=Navigation(mode="walk", bounds=[[-50.0, -50.0, -5.0], [50.0, 50.0, 20.0]]),
+                        plan=TourPlan(t=0.0, keys=[TourKey(t=0.0, **pose), TourKey(t=9.0, **pose)])))
     return [m.model_dump(mode="python") for m in hellos + others]
 
 
