@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
+from scipy import ndimage
 
 from proto.messages import Navigation, TourKey, TourPlan
 from proto.tour import Tour
@@ -50,8 +51,6 @@ def _stops(grid: WalkableGrid, n: int, rng: np.random.Generator) -> np.ndarray:
     if rows.size == 0:
         raise ValueError("the scene has no walkable ground for a kiosk tour")
     # Stay a few cells from the region's edge: a stop against a wall looks at the wall.
-    from scipy import ndimage
-
     inner = ndimage.binary_erosion(region, iterations=max(1, int(round(0.6 / grid.cell))))
     if inner.any():
         rows, cols = np.nonzero(inner)
