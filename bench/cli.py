@@ -81,16 +81,34 @@ def bench_predict(
                                         "(default: Den Haag, built if missing)"),
     size: Optional[int] = typer.Option(None, help="scale of the default Den Haag store (trees; default: full)"),
     seed: int = typer.Option(0, help="random seed (jitter, pair sampling)"),
+    kiosk: bool = typer.Option(True, help="compare tour-aware with linear prediction on a kiosk tour"),
+    kiosk_store: Optional[Path] = typer.Option(None, help="the store the kiosk tour walks (default: the "
+                                               "auditorium, built if missing)"),
+    kiosk_seconds: float = typer.Option(6.0, help="seconds of the kiosk tour the image error is measured over "
+                                        "(two real client runs; 0: skip the image error)"),
+    kiosk_viewport: str = typer.Option("320x180", help="viewport of the kiosk image-error runs, WxH"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON line of figures"),
 ) -> None:
-    """Prediction error against horizon on the scenes' tours (against holding the last pose), and
-    nearest-vertex against collapse-map geomorph correspondences rendered by the real client."""
+    """Prediction error against horizon on the scenes' tours (against holding the last pose),
+    nearest-vertex against collapse-map geomorph correspondences rendered by the real client, and on a
+    kiosk tour the prediction and image error of tour-aware against linear prediction."""
     from bench.correspondence import measure
-    from bench.stores import build_demo, cached_denhaag, demo_store
+    from bench.stores import build_demo, cached_auditorium, cached_denhaag, demo_store
     from bench.predict import run, tours_from_stores
 
     if rate <= 0 or jitter < 0 or pairs < 0:
         raise typer.BadParameter("rate must be positive, jitter and pairs non-negative")
+    if kiosk_seconds < 0 or (0 < kiosk_seconds <= 2.0):
+        raise typer.BadParameter("must be 0 (skip) or more than the 2 s warm-up", param_hint="--kiosk-seconds")
+    try:
+        viewport = tuple(int(v) for v in kiosk_viewport.lower().split("x"))
+        if len(viewport) != 2 or min(viewport) < 16:
+            raise ValueError
+    except ValueError:
+        raise typer.BadParameter(f"expected WxH of at least 16x16, got {kiosk_viewport!r}",
+                                 param_hint="--kiosk-viewport") from None
+    if kiosk_store is not None and not kiosk_store.exists():
+        raise typer.BadParameter(f"no such store: {kiosk_store}", param_hint="--kiosk-store")
     for path in stores or []:
         if not path.exists():
             raise typer.BadParameter(f"no such store: {path}", param_hint="--store")
@@ -107,16 +125,33 @@ def bench_predict(
     with bar:
         prediction = run(tours_from_stores(stores), rate=rate, jitter=jitter, seed=seed, progress=tick)
         morph = measure(city, pairs=pairs, seed=seed, progress=tick) if pairs else None
+        walk = None
+        if kiosk:
+            from bench.kiosk import image_kiosk, kiosk_tour, predict_kiosk
+            from server.scene.store import SceneStore
+
+            kiosk_store = kiosk_store or cached_auditorium(as_json)
+            with SceneStore.open(kiosk_store) as store:
+                grid = store.walkable()
+            keys = kiosk_tour(grid, seed=seed)
+            walk = {"predict": predict_kiosk(keys, grid, rate=rate, progress=tick)}
+            if kiosk_seconds:
+                walk["image"] = image_kiosk(kiosk_store, keys, duration=kiosk_seconds, viewport=viewport,
+                                            progress=tick)
     lines = ["Prediction error against horizon (linear prediction vs holding the last pose):", *prediction["lines"]]
     if morph is not None:
         lines += ["", f"Geomorph correspondences on {city.name} (half-way morph vs the blend of its end states):",
                   *morph["lines"]]
+    for part in (walk or {}).values():
+        lines += ["", *part["lines"]]
     for line in lines:  # to stderr under --json, so the JSON stays the last line of stdout
         typer.echo(line, err=as_json)
     if as_json:
         out = {"prediction": {k: v for k, v in prediction.items() if k != "lines"}}
         if morph is not None:
             out["correspondence"] = {k: v for k, v in morph.items() if k != "lines"}
+        if walk is not None:
+            out["kiosk"] = {name: {k: v for k, v in part.items() if k != "lines"} for name, part in walk.items()}
         print(json.dumps(out))
 
 

@@ -273,6 +273,7 @@ def run_one(
     algorithms: Sequence[str] = ALGORITHMS,
     calibrate: bool = True,
     calibration_cores: Sequence[int] | None = None,
+    plan: bool = False,
 ) -> tuple[dict, list]:
     """One fresh session of ``spec`` over the tour (the server's, or ``tour``); returns (run dict, traces).
 
@@ -295,6 +296,7 @@ def run_one(
             server_url, scene, duration=duration, viewport=tuple(viewport), fov_y=fov_y,
             target_frame_time=spec.target_ms / 1e3, solver=m.solver, predict=m.predict, morph=m.morph, trace=True,
             tour=tour, on_frame=on_frame, max_fps=max_fps, algorithms=tuple(algorithms), governor=spec.governor,
+            plan=plan,
         )
     frames = _frames_dict(run.frames)
     summary = summarize_frames(frames, warmup, spec.target_ms)

@@ -26,7 +26,9 @@ import uuid
 from pathlib import Path
 from typing import Callable, Sequence
 
-from proto.messages import ALGORITHMS, PROTOCOL_VERSION, Error, Hello
+import numpy as np
+
+from proto.messages import ALGORITHMS, PROTOCOL_VERSION, Error, Hello, TourKey, TourPlan
 from proto.tour import Tour
 
 from .connection import Arrived, Item, Link, Redialled, as_urls, open_patiently, with_client
@@ -41,6 +43,27 @@ from .splats import SplatLayer
 __all__ = ["run_client"]
 
 CLIENT_NAME = "walkstream-client/0.1"
+
+
+#: Keys a hello's plan carries at most: a hello must fit one client frame (``proto.codec.MAX_CLIENT_FRAME``).
+HELLO_PLAN_KEYS = 400
+
+
+def tour_plan(keys: Sequence[dict], duration: float) -> TourPlan:
+    """The plan of a run that follows looping tour ``keys`` from client time 0 (tour time = client time):
+    the loops unrolled over ``duration`` s and a second more, at most ``HELLO_PLAN_KEYS`` keys (a longer run
+    is predicted from its samples after them)."""
+    tour = Tour(keys)
+    loop = tour.duration
+    out: list[TourKey] = []
+    k = 0
+    while True:  # at each loop's end both its last key and the next loop's first stand at one time, as Tour wraps
+        out += [TourKey(t=float(tour.t[i] + k * loop), eye=tour.eye[i].tolist(), forward=tour.forward[i].tolist(),
+                        up=tour.up[i].tolist()) for i in range(len(tour.t))]
+        if loop <= 0 or len(out) >= HELLO_PLAN_KEYS or tour.t[0] + (k + 1) * loop > duration + 1.0:
+            end = int(np.searchsorted([key.t for key in out], duration + 1.0)) + 1  # one key past the run
+            return TourPlan(t=0.0, keys=out[:min(end, HELLO_PLAN_KEYS)], tour="run")
+        k += 1
 
 
 def run_client(
@@ -70,6 +93,7 @@ def run_client(
     tour: "Sequence[dict] | None" = None,
     governor: bool = True,
     calibrate: bool = True,
+    plan: bool = False,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
@@ -95,7 +119,8 @@ def run_client(
     ``governor`` (on by default) asks for the delta's ladder and corrects the selection every
     frame to hold ``target_frame_time`` (``client.governor``); off, the server's plan is drawn as it is.
     ``calibrate`` measures the renderer's seconds per vertex before the hello (``client.calibrate``), the
-    server's first guess for its cost model.
+    server's first guess for its cost model. ``plan`` (with a ``tour``) tells the server the path in the
+    hello (``Hello.plan``): it then predicts the camera along the tour instead of extrapolating.
     Raises ``client.connection.ClientError`` if the session cannot be opened, ``client.window.WindowError``
     if the window cannot.
     """
@@ -109,6 +134,8 @@ def run_client(
     if tour is not None:
         tour = list(tour)
         Tour(tour)  # raises ValueError now, before connecting, on a malformed tour
+    if plan and tour is None:
+        raise ValueError("plan needs a tour: the path the hello announces")
     width, height = (int(v) for v in viewport)
     view = None
     if window:
@@ -138,6 +165,7 @@ def run_client(
             target_frame_time=target_frame_time, solver=solver, client=CLIENT_NAME, predict=predict, morph=morph,
             algorithms=list(algorithms), cache_bytes=cache_bytes, governor=governor,
             c_vertex=renderer_c_vertex(renderer) if calibrate else None, **limits,
+            plan=tour_plan(tour, duration) if plan else None,
         )
         opened = open_patiently(urls, hello, timeout, max(0.0, reconnect_timeout))
         link = Link(urls, hello, start, timeout=timeout, patience=reconnect_timeout, silence=silence_timeout)

@@ -1,7 +1,8 @@
 """What a scene store holds, as numbers a person or a script can read (``walkstream inspect``).
 
-Everything comes from the index arrays (no geometry is decoded), so a
-megacity store reports in the time its index takes to load.
+Everything comes from the index arrays and the stored walkable grid (no
+geometry is decoded), so a megacity store reports in the time its index takes
+to load.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ def inspect_store(path: str | os.PathLike[str]) -> dict:
         idx = store.index
         fid = store.fidelity()
         names = store.object_names() if fid is not None else []
+        walkable = _walkable(store.stored_walkable())
     kinds = {}
     for k, kind in enumerate(KINDS):
         objs = np.nonzero(idx.object_kind == k)[0]
@@ -90,7 +92,20 @@ def inspect_store(path: str | os.PathLike[str]) -> dict:
         "tour_seconds": float(idx.tour[-1]["t"]) if idx.tour else 0.0,
         "viewpoints": idx.meta.get("viewpoints") or {},
         "shape_guard": idx.meta.get("shape_guard") or {},
+        "walkable": walkable,
     }
+
+
+def _walkable(grid) -> dict:
+    """The stored walkable grid's shape, cell size and walkable share (``stored`` False: built before grids
+    were; a server computes it on first use)."""
+    if grid is None:
+        return {"stored": False}
+    walk = np.isfinite(grid.ground)
+    return {"stored": True, "shape": list(grid.shape), "cell": round(grid.cell, 4),
+            "walkable_share": round(float(walk.mean()), 4),
+            "height": [round(float(grid.ground[walk].min()), 3), round(float(grid.ground[walk].max()), 3)]
+            if walk.any() else None}
 
 
 def _quantiles(x: np.ndarray) -> dict:
@@ -185,4 +200,11 @@ def format_report(r: dict) -> list[str]:
         lines.append(f"  tree models: {r['tree_models']}, tree instances: {r['tree_instances']}")
         for m in r["tree_model_sources"]:
             lines.append(f"    model {m['id']}: {m['name'] or '-'}  {m['points']} points  from {m['source'] or '-'}")
+    w = r.get("walkable") or {}
+    if w.get("stored"):
+        ny, nx = w["shape"]
+        lines.append(f"  walkable grid: {nx} × {ny} cells of {w['cell']:.3g} m, {100 * w['walkable_share']:.1f} % walkable"
+                     + (f", ground {w['height'][0]:.2f} … {w['height'][1]:.2f} m" if w["height"] else ""))
+    else:
+        lines.append("  walkable grid: not stored (built before walkable grids; the server computes it on first use)")
     return lines

@@ -25,6 +25,8 @@ Schema (version ``SCHEMA_VERSION``; ``PRAGMA application_id`` marks the file)::
            lo_x, lo_y, lo_z, hi_x, hi_y, hi_z REAL, geometry BLOB)
                                                         tree models as prefix-ordered point sets
                                                         (``proto.points``), shared by tree groups
+    walkable(id INTEGER PRIMARY KEY (= 0), origin_x, origin_y, cell REAL, ny, nx INTEGER, ground BLOB)
+                                                        optional: the walkable grid, heights zstd float32
 
 A ``trees`` object's representation holds its instance list
 (``proto.points.encode_instances``); its ``vertices`` count is the group's
@@ -41,10 +43,15 @@ from pathlib import Path
 from typing import Iterable
 
 import numpy as np
+import zstandard
+
+from proto.walkable import WalkableGrid
+from proto.walkable import encode as walkable_encode
 
 from .index import KINDS, SceneIndex, hierarchy
 
-__all__ = ["SCHEMA_VERSION", "APPLICATION_ID", "TABLES", "OPTIONAL_TABLES", "META_KEYS", "StoreError", "SceneStore"]
+__all__ = ["SCHEMA_VERSION", "APPLICATION_ID", "TABLES", "OPTIONAL_TABLES", "META_KEYS", "StoreError", "SceneStore",
+           "walkable_row"]
 
 SCHEMA_VERSION = 2
 #: ``PRAGMA application_id`` of a walkstream store ("WkSt"), so foreign SQLite files are told apart.
@@ -68,16 +75,22 @@ TABLES = {
         "geometry BLOB NOT NULL)"
     ),
 }
-#: Meta keys every store has (``SceneWriter.commit`` writes them, ``SceneStore.open`` requires them).
 #: Optional tables: a store without them still opens (older builds); ``fidelity`` holds each
 #: measured representation's method, area ratio, least silhouette IoU, FLIP (``server.scene.fidelity``)
-#: and whether the area bound applies to it (``closed``; NULL in older builds: it did).
+#: and whether the area bound applies to it (``closed``; NULL in older builds: it did); ``walkable`` the
+#: walkable grid (``server.scene.walkable``) in one row, its heights as zstd-compressed float32 (ny, nx).
 OPTIONAL_TABLES = {
     "fidelity": (
         "CREATE TABLE fidelity (rep INTEGER PRIMARY KEY, method TEXT NOT NULL, area_ratio REAL NOT NULL, "
         "iou REAL NOT NULL, flip REAL, closed INTEGER)"
     ),
+    "walkable": (
+        "CREATE TABLE walkable (id INTEGER PRIMARY KEY CHECK (id = 0), origin_x REAL NOT NULL, "
+        "origin_y REAL NOT NULL, cell REAL NOT NULL, ny INTEGER NOT NULL, nx INTEGER NOT NULL, "
+        "ground BLOB NOT NULL)"
+    ),
 }
+#: Meta keys every store has (``SceneWriter.commit`` writes them, ``SceneStore.open`` requires them).
 META_KEYS = ("schema_version", "name", "bounds", "tour", "start", "class_names")
 #: Blobs fetched per SELECT in ``geometries`` (SQLite's default variable limit is 999+).
 _CHUNK = 500
@@ -102,6 +115,8 @@ class SceneStore:
         self.index = index
         self._conn: sqlite3.Connection | None = conn
         self._lock = threading.Lock()
+        self._walkable_lock = threading.Lock()  # one computation of a missing grid, however many ask
+        self._walkable: tuple | None = None  # (grid, its wire bytes or None until asked for)
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> "SceneStore":
@@ -182,6 +197,44 @@ class SceneStore:
             "flip": np.array([np.nan if r[4] is None else r[4] for r in rows], np.float64),
         }
 
+    def walkable(self) -> WalkableGrid:
+        """The scene's walkable grid (``server.scene.walkable``): as stored at build time, or — for a store
+        built before grids were — computed on first use and kept in memory (the store stays read-only)."""
+        with self._walkable_lock:
+            if self._walkable is None:
+                grid = self.stored_walkable()
+                if grid is None:
+                    from .walkable import walkable_grid
+
+                    grid = walkable_grid(self)
+                self._walkable = (grid, None)
+            return self._walkable[0]
+
+    def walkable_encoded(self) -> bytes:
+        """``proto.walkable.encode`` of ``walkable()``, encoded once per open store (every welcome shares it)."""
+        grid = self.walkable()
+        with self._walkable_lock:
+            if self._walkable[1] is None:
+                self._walkable = (grid, walkable_encode(grid))
+            return self._walkable[1]
+
+    def stored_walkable(self) -> WalkableGrid | None:
+        """The walkable grid as the build stored it; None for a store built before grids were (nothing computed)."""
+        with self._lock:
+            conn = self._connection()
+            if "walkable" not in _table_names(conn):
+                return None
+            row = conn.execute("SELECT origin_x, origin_y, cell, ny, nx, ground FROM walkable WHERE id = 0").fetchone()
+        if row is None:
+            return None
+        try:
+            ny, nx = int(row[3]), int(row[4])
+            raw = zstandard.ZstdDecompressor().decompress(row[5], max_output_size=4 * ny * nx)
+            ground = np.frombuffer(raw, "<f4").reshape(ny, nx)
+            return WalkableGrid(origin=(row[0], row[1]), cell=row[2], ground=ground)
+        except (ValueError, zstandard.ZstdError) as exc:
+            raise StoreError(f"{self.path}: corrupt: walkable grid: {exc}") from None
+
     def object_names(self) -> list[str]:
         """Names of objects 0..n-1 (for people and logs; kept out of the index)."""
         with self._lock:
@@ -206,6 +259,13 @@ class SceneStore:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def walkable_row(grid: WalkableGrid) -> tuple:
+    """The ``walkable`` table's row for ``grid`` (``SceneWriter`` inserts it, ``SceneStore.walkable`` reads it)."""
+    ny, nx = grid.shape
+    blob = zstandard.ZstdCompressor(level=9).compress(grid.ground.astype("<f4").tobytes())
+    return (0, grid.origin[0], grid.origin[1], grid.cell, ny, nx, sqlite3.Binary(blob))
 
 
 def _load_index(path: Path, conn: sqlite3.Connection) -> SceneIndex:

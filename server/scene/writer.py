@@ -28,7 +28,8 @@ from proto.messages import Pose, TourKey
 from proto.morph import encode_morph
 
 from .index import KINDS, MESH
-from .store import APPLICATION_ID, META_KEYS, OPTIONAL_TABLES, SCHEMA_VERSION, TABLES, StoreError
+from .store import APPLICATION_ID, META_KEYS, OPTIONAL_TABLES, SCHEMA_VERSION, TABLES, SceneStore, StoreError, walkable_row
+from .walkable import walkable_grid
 
 __all__ = ["SceneWriter", "encode_levels", "object_box"]
 
@@ -61,11 +62,13 @@ class SceneWriter:
     """
 
     def __init__(self, path: str | os.PathLike[str], *, name: str | None = None, generator: str = "",
-                 seed: int | None = None, class_names: Sequence[str] = ()) -> None:
+                 seed: int | None = None, class_names: Sequence[str] = (), walkable: bool = True) -> None:
         """path: the store to make; name: the scene's name (default: the file's stem);
         generator, seed: recorded in meta; class_names: class ids to fix in this order
-        (classes first seen in ``add_object`` are appended)."""
+        (classes first seen in ``add_object`` are appended); walkable: compute the walkable grid
+        (``server.scene.walkable``) from the finished store and keep it in it."""
         self.path = Path(path)
+        self.walkable = bool(walkable)
         self.name = name if name is not None else self.path.stem
         self.generator = generator
         self.seed = seed
@@ -265,6 +268,8 @@ class SceneWriter:
         try:
             self._conn.executemany("INSERT INTO meta VALUES (?, ?)", [(k, json.dumps(v)) for k, v in meta.items()])
             self._conn.commit()
+            if self.walkable:
+                self._add_walkable()
             self._conn.close()
             os.chmod(self._tmp, 0o644)  # mkstemp made it private; a store is meant to be shared
             with open(self._tmp, "rb+") as f:
@@ -275,6 +280,13 @@ class SceneWriter:
             raise StoreError(f"{self.path}: cannot write store: {exc}") from None
         self._done = True
         return self.path
+
+    def _add_walkable(self) -> None:
+        """The walkable grid, computed from the store as written so far (read back as any reader would)."""
+        with SceneStore.open(self._tmp) as store:
+            grid = walkable_grid(store)
+        self._conn.execute("INSERT INTO walkable VALUES (?, ?, ?, ?, ?, ?, ?)", walkable_row(grid))
+        self._conn.commit()
 
     def abort(self) -> None:
         """Discard the build: close and delete the temporary file. Safe to call twice."""

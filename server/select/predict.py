@@ -14,6 +14,11 @@ Where prediction can be wrong, the conservative camera of ``conservative_camera`
 holds everything the user can reach, so every potentially visible object is
 drawn at some level.
 
+Beyond the paper, the predictor knows the navigation when the client states it
+(``navigation``): a tour plan gives exact future poses wherever it covers the
+time asked for (``set_plan``), and a walking camera's extrapolated eye stays on
+walkable ground and within bounds (``navigable``).
+
 Pure: times are the client's clock as the samples carry it; nothing here reads
 a clock or does I/O.
 """
@@ -26,7 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from proto.messages import TourPlan
+
 from . import kernels
+from .navigation import Navigable, Plan, check_plan, plan_after
 from .snapshot import dump_fields, load_fields
 
 __all__ = ["MotionLimits", "Pose", "Predictor", "conservative_camera", "tour_speed"]
@@ -221,6 +229,9 @@ class Predictor:
         self._turn_seen = 0.0
         self._stale = False  # samples arrived since the last fit: refit when a prediction is asked for
         self._fit_t = -math.inf  # the newest sample's time at the last fit
+        self.plan: Plan | None = None  # the tour plan the client announced (``set_plan``)
+        self.navigable: Navigable | None = None  # where the camera can go (the owner's, like the limits)
+        self.revision = 0  # counts plan changes: a prediction cached before one is stale
 
     # ------------------------------------------------------------------ state
 
@@ -291,6 +302,13 @@ class Predictor:
             self._fit()
         return False
 
+    def set_plan(self, message: TourPlan, scene_bounds: np.ndarray) -> None:
+        """Take a client's tour plan (``navigation.plan_after``); ``ProtocolError`` (predictor unchanged) for
+        a plan ``navigation.check_plan`` refuses, judged against the newest sample."""
+        check_plan(message, scene_bounds, self.latest)
+        self.plan = plan_after(self.plan, message, self.latest)
+        self.revision += 1
+
     # ------------------------------------------------------------------ snapshot
 
     #: The fields a snapshot holds: the recent poses, their fit and the motion seen; the limits stay the owner's.
@@ -298,16 +316,19 @@ class Predictor:
              "_t", "_x", "_floor", "_a", "_b", "_speed_seen", "_turn_seen")
 
     def to_state(self) -> dict:
-        """The history and its fit as plain data (``from_state`` reads it back)."""
+        """The history, its fit and the tour plan as plain data (``from_state`` reads it back)."""
         self._fit()  # the fit is lazy: bring it up to the poses held
-        return dump_fields(self, self.STATE)
+        return {**dump_fields(self, self.STATE), "plan": None if self.plan is None else self.plan.to_state()}
 
     def from_state(self, state) -> None:
-        """Take in ``to_state``'s data; ValueError (predictor unchanged) if it does not fit."""
+        """Take in ``to_state``'s data; ValueError (predictor unchanged) if it does not fit. A snapshot from
+        before plans were holds none."""
         trial = copy.copy(self)
         load_fields(trial, state, self.STATE, "predictor", variable=("_t", "_x"))
         if trial._t.shape[0] != trial._x.shape[0] or (trial._t.size and np.any(np.diff(trial._t) < 0)):
             raise ValueError("predictor: times and poses do not match")
+        trial.plan = Plan.from_state(state.get("plan"))
+        trial.revision = self.revision + 1
         self.__dict__.update(trial.__dict__)
 
     def _fit(self) -> None:
@@ -372,17 +393,29 @@ class Predictor:
     # ------------------------------------------------------------------ output
 
     def pose(self, t: float) -> Pose:
-        """The predicted pose at client time ``t``: the fitted line evaluated at t, no faster than θ and ω."""
+        """The predicted pose at client time ``t``: the plan's where it covers t, else the fitted line evaluated
+        at t, no faster than θ and ω (and confined to where the camera can go)."""
         return self.poses([t])[0]
 
     def poses(self, times) -> list[Pose]:
         """``pose`` at each of ``times``; the rates (clamped to θ and ω) are worked out once for all of them."""
-        if not len(self._t):
-            raise ValueError("no camera sample yet")
         times = [float(t) for t in times]
         for t in times:
             if not math.isfinite(t):
                 raise ValueError(f"t must be finite, got {t!r}")
+        covered = self.plan.covers(np.array(times)) if self.plan is not None else np.zeros(len(times), bool)
+        rest = [t for t, c in zip(times, covered) if not c]
+        linear = iter(self._linear(rest) if rest else ())
+        planned = iter(())
+        if covered.any():
+            eye, f, u = self.plan.poses(np.array(times)[covered])
+            planned = iter([Pose(eye=e, forward=a, up=b) for e, a, b in zip(eye, f, u)])
+        return [next(planned) if c else next(linear) for c in covered]
+
+    def _linear(self, times: list[float]) -> list[Pose]:
+        """The fitted line's poses at ``times`` (see ``poses``)."""
+        if not len(self._t):
+            raise ValueError("no camera sample yet")
         self._fit()
         a, b = self._a, self._b
         theta, omega = self.theta, self.omega
@@ -404,6 +437,9 @@ class Predictor:
             if _norm(up - np.dot(up, forward) * forward) <= 1e-9:
                 up = self._x[-1, 6:9]
             out.append(Pose(eye=eye, forward=forward, up=_orthogonal_up(forward, up)))
+        if self.navigable is not None and out:
+            eyes = self.navigable.confine(a[:3], np.array([p.eye for p in out]))
+            out = [Pose(eye=e, forward=p.forward, up=p.up) for e, p in zip(eyes, out)]
         return out
 
     def samples(self, t0: float, t1: float, k: int = 3) -> list[tuple[float, Pose]]:

@@ -24,6 +24,10 @@ class SceneSource(Protocol):
 
     def geometries(self, reps) -> list[bytes]: ...
 
+    def walkable(self): ...
+
+    def walkable_encoded(self) -> bytes: ...
+
 
 class SessionState(enum.Enum):
     AWAIT_HELLO = "await_hello"

@@ -5,7 +5,8 @@ naming a served scene and a known solver moves it to ``ACTIVE`` and is answered
 with ``welcome`` and a ``ping``. From then on the client streams ``camera``
 poses and ``frame_report`` measurements, answers pings with ``pong`` and acks
 each delta; every report folds into the cost model (the feedback of Zach 2002,
-4.2), every pose into the path predictor. Each message type has one handler
+4.2), every pose into the path predictor, and a ``tour_plan`` tells the predictor
+the path ahead (``select.navigation``). Each message type has one handler
 (``_HANDLERS``).
 
 Time is the client's clock: pongs give its offset and the round trip, acks the
@@ -48,13 +49,14 @@ from proto.codec import decode_client
 from proto.errors import ProtocolError
 from proto.manifest import unpack_held
 from proto.messages import ALGORITHMS, PROTOCOL_VERSION, Ack, Camera, Error, FrameReport, Hello, Ping, Pong, Pose
-from proto.messages import Heartbeat, TourKey, Welcome
+from proto.messages import Heartbeat, TourKey, TourPlan, Welcome
 
 from .. import state as _blob
 from ..clock import ClockSync, Delivery
 from ..select import solvers
 from ..select.cost import CostModel, FrameCostModel
 from ..select.cost_online import OnlineCostModel
+from ..select.navigation import Navigable, check_plan
 from ..select.predict import MotionLimits, Predictor, tour_speed
 from ..select.snapshot import dump_fields, load_fields
 from .config import TAIL_MIN_SHARE, SceneSource, SessionConfig, SessionState
@@ -153,6 +155,13 @@ class Session:
             self.timing.next_selection = now  # the first pose is answered at once
         return []
 
+    def _on_tour_plan(self, message: TourPlan, now: float) -> list[BaseModel]:
+        if self.predictor is None:  # nothing predicts: the plan is checked, and has no use
+            check_plan(message, self.pipeline.table.bounds)
+        else:
+            self.predictor.set_plan(message, self.pipeline.table.bounds)
+        return []
+
     def _on_pong(self, message: Pong, now: float) -> list[BaseModel]:
         # Only the stamp we sent under that id counts: a forged one would skew the clock (a pong claiming a ping
         # from the far past would push every schedule past the end of time).
@@ -220,6 +229,8 @@ class Session:
         index = store.index
         # A bad ``held`` is refused (bad_held) before anything changes.
         held = None if hello.held is None else unpack_held(hello.held, index.n_representations)
+        if hello.plan is not None and hello.resume is None:
+            check_plan(hello.plan, index.bounds)  # a bad plan is refused before anything changes, too
         resumed = self._resumes(hello)
         restored, self._restored = self._restored, None
         self.hello = hello
@@ -254,6 +265,8 @@ class Session:
             self.timing.restart()  # a reset delta, as after a teleport; seq numbers continue
         else:
             self.mirror = CacheMirror(table, budget, self.id)
+        if self.predictor is not None:
+            self._navigation(hello, store)
         if held is not None:
             self.mirror.adopt(held)
         else:
@@ -277,9 +290,22 @@ class Session:
                 token=self.token,
                 resumed=resumed,
                 held=self.mirror.held[0],
+                walkable=store.walkable_encoded() if hello.walkable else None,
             ),
             self._ping(now),
         ]
+
+    def _navigation(self, hello: Hello, store: SceneSource) -> None:
+        """The hello's navigation and tour plan, for the predictor: a resumed session keeps the plan it held
+        unless the hello's is newer (a redial may repeat the first hello's plan)."""
+        walk = hello.navigation is not None and hello.navigation.mode == "walk"
+        self.predictor.navigable = Navigable.of(hello.navigation, store.walkable() if walk else None)
+        plan, held = hello.plan, self.predictor.plan
+        if plan is not None and (held is None or plan.t > held.issued):
+            try:
+                self.predictor.set_plan(plan, store.index.bounds)
+            except ProtocolError:  # only a resume gets here (a fresh hello's plan was checked): keep what it held
+                pass
 
     def _ping(self, now: float) -> Ping:
         self._ping_id += 1
@@ -332,8 +358,9 @@ class Session:
     def _frame(self, now: float) -> tuple:
         """(client now, reset, start, switch, t0, t1, view, margin) of the selection started at ``now``: the
         same until the session changes (kept, so a batch's request and the poll share one computation)."""
-        key = (now, self.seq, self.acks, self.clock.offset, self.predictor.resets if self.predictor else 0,
-               self.predictor.latest if self.predictor else None, self.timing.switch, self.timing.reset)
+        p = self.predictor
+        key = (now, self.seq, self.acks, self.clock.offset, p.resets if p else 0, p.latest if p else None,
+               p.revision if p else 0, self.timing.switch, self.timing.reset)
         if self._framed is not None and self._framed[0] == key:
             return self._framed[1]
         hello, camera = self.hello, self.camera
@@ -554,4 +581,5 @@ _HANDLERS: dict[type, Callable[[Session, BaseModel, float], list[BaseModel]]] = 
     Ack: Session._on_ack,
     FrameReport: Session._on_frame_report,
     Heartbeat: Session._on_heartbeat,
+    TourPlan: Session._on_tour_plan,
 }

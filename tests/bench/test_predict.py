@@ -83,7 +83,8 @@ def test_cli_prints_both_parts_as_json(demo_store, denhaag_store):
     import sys
 
     done = subprocess.run([sys.executable, "-m", "walkstream", "bench", "predict", "--store", str(demo_store),
-                           "--city", str(denhaag_store), "--pairs", "4", "--json"],
+                           "--city", str(denhaag_store), "--pairs", "4", "--kiosk-store", str(demo_store),
+                           "--kiosk-seconds", "0", "--json"],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     figures = json.loads(done.stdout)
@@ -91,6 +92,19 @@ def test_cli_prints_both_parts_as_json(demo_store, denhaag_store):
     assert {r["horizon"] for r in rows} == {0.25, 0.5, 1.0, 1.5, 2.0}
     assert figures["correspondence"]["summary"]["winner"] in ("collapse", "nearest", "tie")
     assert "Prediction error against horizon" in done.stderr and "winner:" in done.stderr
+    kiosk = figures["kiosk"]["predict"]["rows"]  # tour-aware against linear on a kiosk tour of the garden
+    assert kiosk and all(r["plan_pos_ratio"] < 1e-3 for r in kiosk) and "plan/lin" in done.stderr
+    assert "image" not in figures["kiosk"]
+
+
+def test_cli_refuses_a_bad_kiosk_option(tmp_path):
+    import subprocess
+    import sys
+
+    for args, words in ((["--kiosk-seconds", "1"], "--kiosk-seconds"), (["--kiosk-viewport", "big"], "WxH")):
+        done = subprocess.run([sys.executable, "-m", "walkstream", "bench", "predict", "--pairs", "0", *args],
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2 and words in done.stderr
 
 
 def test_cli_refuses_a_missing_store(tmp_path):

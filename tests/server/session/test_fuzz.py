@@ -44,6 +44,7 @@ from proto.messages import (
     FrameReport,
     Heartbeat,
     Hello,
+    Navigation,
     Ping,
     Pong,
     Resume,
@@ -117,7 +118,13 @@ def seed_messages(index) -> list[dict]:
                   tour="harbour", stop=3),
         Heartbeat(kiosk="k", t=0.8, frames=0),
         TourPlan(t=0.9, keys=[TourKey(t=1.0, **pose), TourKey(t=3.0, **pose)], tour="harbour"),
+        TourPlan(t=0.2, keys=[TourKey(t=0.2, **pose), TourKey(t=5.0, **pose)], tour="fuzz"),
+        TourPlan(t=0.4, keys=[]),
+        Heartbeat(kiosk="k1", t=1.0, frames=60, fps=60.0, frame_p95=0.02, recent=[0.016, 0.017]),
     ]
+    hellos.append(Hello(protocol=PROTOCOL_VERSION, scene=index.name, viewport=[320, 200], walkable=True,
+                        navigation=Navigation(mode="walk", bounds=[[-50.0, -50.0, -5.0], [50.0, 50.0, 20.0]]),
+                        plan=TourPlan(t=0.0, keys=[TourKey(t=0.0, **pose), TourKey(t=9.0, **pose)])))
     return [m.model_dump(mode="python") for m in hellos + others]
 
 
