@@ -70,6 +70,7 @@ def run_client(
     tour: "Sequence[dict] | None" = None,
     governor: bool = True,
     calibrate: bool = True,
+    record_tour: Path | None = None,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
@@ -94,6 +95,8 @@ def run_client(
     frame to hold ``target_frame_time`` (``client.governor``); off, the server's plan is drawn as it is.
     ``calibrate`` measures the renderer's seconds per vertex before the hello (``client.calibrate``), the
     server's first guess for its cost model.
+    ``record_tour`` (with ``window`` and a navigator): M or Space marks the current pose as a tour stop, and the
+    stops are written there when the run ends (``client.kiosk.record``; nothing is written if none was marked).
     Raises ``client.connection.ClientError`` if the session cannot be opened, ``client.window.WindowError``
     if the window cannot.
     """
@@ -103,6 +106,8 @@ def run_client(
         raise ValueError("interactive navigation (fly, walk) needs window=True")
     if tour is not None and navigate != "tour":
         raise ValueError("a tour and interactive navigation exclude each other")
+    if record_tour is not None and navigate == "tour":
+        raise ValueError("recording a tour needs interactive navigation (fly or walk) in a window")
     if tour is not None:
         tour = list(tour)
         Tour(tour)  # raises ValueError now, before connecting, on a malformed tour
@@ -125,6 +130,12 @@ def run_client(
     limits = {} if navigator is None else {"max_speed": navigator.max_speed, "max_turn": navigator.max_turn}
     if view is not None:
         view.controller = navigator
+    recorder = None
+    if record_tour is not None and view is not None and navigator is not None:
+        from .kiosk.record import StopRecorder
+
+        recorder = StopRecorder()
+        view.marker = lambda: recorder.mark(navigator.pose)
     start = time.monotonic()  # the client clock: every t is seconds since here
     client_id = uuid.uuid4().hex
     url = with_client(url, client_id)
@@ -173,6 +184,8 @@ def run_client(
             run.governor = loop.governor.predictor.report()
         return run
     finally:
+        if recorder is not None and recorder.stops:
+            recorder.write(record_tour)
         if loop is not None and loop.splats is not None:
             loop.splats.release()
         renderer.release()

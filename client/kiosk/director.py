@@ -87,13 +87,21 @@ class Director:
 
     # ----------------------------------------------------------------- the frame loop's side
 
-    def begin(self, welcome: Welcome, t: float, loop: "FrameLoop") -> None:
-        """The session is open: bounds, walkable ground and start, then the attract loop from the first stop."""
+    def attach(self, renderer) -> None:
+        """Draw the overlay over ``renderer``'s frames (a new renderer: a new compositor)."""
         from .compositor import Compositor
 
+        if self.compositor is not None and self.compositor.renderer is renderer:
+            return
+        self.release()
+        self.compositor = Compositor(renderer)
+
+    def begin(self, welcome: Welcome, t: float, loop: "FrameLoop") -> None:
+        """The session is open: bounds, walkable ground, then the attract loop from the first stop (a later
+        session of the same run carries on from where the camera is)."""
         self.loop = loop
-        if self.compositor is None:
-            self.compositor = Compositor(loop.renderer)
+        self.attach(loop.renderer)
+        self._reconnects = 0
         nav = self.config.navigation
         if welcome.walkable:
             try:
@@ -103,9 +111,15 @@ class Director:
         bounds = nav.bounds or welcome.bounds
         self.navigator = KioskNavigator(nav.mode, bounds=bounds, max_speed=nav.max_speed, max_turn=nav.max_turn,
                                         eye_height=nav.eye_height, grid=self.grid)
+        first = self.playlist is None
         self.playlist = Playlist(playlist_stops(self.config.playlist), ground=self.grid, eye_height=nav.eye_height)
-        self._play(self.playlist.pose(0), t, 0)
-        self.states.append((t, self.machine.state))
+        if first:
+            self._play(self.playlist.pose(0), t, 0)
+            self.states.append((t, self.machine.state))
+        else:
+            self._play(self._pose if self._pose is not None else self.playlist.pose(0), t, 0)
+            if self.machine.state != ATTRACT:
+                self._take_over(t)
 
     def pose_at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The pose for the frame at client time ``t``."""

@@ -1,7 +1,9 @@
 """The commented example config ``walkstream kiosk --example`` prints: the auditorium, a five-stop tour.
 
 The scene is ``walkstream build auditorium`` (Funkhouser & Séquin's hall: stage with a piano and a lectern,
-twenty rows of chairs rising to the back; z up, the stage at low y). Every stop looks at something in it.
+twenty rows of chairs rising to the back; z up, the stage at low y). Coordinates are the served scene's —
+the store's, recentred on build: the hall spans x ∈ [−15, 15], y ∈ [−18, 18], the stage's front edge at
+y = −10, the first row at y = −7. Every stop looks at something in it.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ mode = "walk"                         # walk (eye height above the walkable grou
 eye_height = 1.7                      # metres
 max_speed = 2.0                       # m/s
 max_turn = 60.0                       # degrees/s
-bounds = [[-14.5, -1.5, 0.2], [14.5, 33.5, 10.5]]  # the camera never leaves this box; [] = the scene's bounds
+bounds = [[-14.5, -17.5, 0.2], [14.5, 17.5, 10.5]]  # the camera never leaves this box; [] = the scene's bounds
 
 [idle]
 idle_s = 90.0                         # this long without a touch → the countdown (at least 30)
@@ -56,32 +58,32 @@ turn = 45.0                           # degrees/s
 # file = "highlights.toml"            # stops from a file instead (`walkstream client --window --record-tour`)
 
   [[tours.stops]]
-  eye = [0.0, 32.5, 5.5]              # the back of the hall, high up
-  look_at = [0.0, 6.0, 1.0]           # or forward = [x, y, z]
+  eye = [0.0, 16.5, 5.5]              # the back of the hall, high up (the scene's coordinates, metres)
+  look_at = [0.0, -10.0, 1.0]         # or forward = [x, y, z]
   dwell_s = 8.0
   caption = { en = "The auditorium: 440 chairs facing the stage", de = "Der Saal: 440 Stühle vor der Bühne" }
 
   [[tours.stops]]
-  eye = [-8.8, 7.9, 1.6]              # the front-left corner
-  look_at = [2.0, 15.0, 0.6]
+  eye = [-8.8, -8.1, 1.6]             # the front-left corner
+  look_at = [2.0, -1.0, 0.6]
   dwell_s = 8.0
   caption = { en = "Twenty rows, each a step higher", de = "Zwanzig Reihen, jede eine Stufe höher" }
 
   [[tours.stops]]
-  eye = [-3.0, 7.6, 2.4]              # in front of the stage
-  look_at = [-3.0, 2.2, 1.6]
+  eye = [-3.0, -8.4, 2.6]             # in front of the stage
+  look_at = [-3.0, -13.8, 1.7]
   dwell_s = 8.0
   caption = { en = "The grand piano", de = "Der Flügel" }
 
   [[tours.stops]]
-  eye = [3.5, 7.6, 2.2]
-  look_at = [3.5, 3.0, 1.8]
+  eye = [3.5, -8.4, 2.4]
+  look_at = [3.5, -13.0, 1.7]
   dwell_s = 6.0
   caption = { en = "The lectern", de = "Das Rednerpult" }
 
   [[tours.stops]]
-  eye = [0.0, 18.5, 3.3]              # the central aisle, row 10
-  look_at = [-8.0, 12.0, 0.8]
+  eye = [0.0, 2.5, 3.3]               # the central aisle, row 10
+  look_at = [-8.0, -4.0, 0.8]
   up = [0.0, 0.0, 1.0]
   dwell_s = 6.0
   caption = { en = "From the aisle: the seats up close", de = "Vom Mittelgang: die Sitze aus der Nähe" }
