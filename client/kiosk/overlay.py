@@ -53,8 +53,9 @@ class Layout:
 
     @property
     def size(self) -> int:
-        """A button's height: ≥ ``MIN_TARGET``, growing with the frame."""
-        return max(MIN_TARGET, round(self.height * 0.09))
+        """A button's height: ≥ ``MIN_TARGET``, growing with the frame (four buttons and their gaps take 7 sizes
+        of its width: a frame narrower than 7 × 44 px crowds them)."""
+        return max(MIN_TARGET, min(round(self.height * 0.09), self.width // 7))
 
     @property
     def margin(self) -> int:
@@ -112,7 +113,7 @@ def wrap(text: str, font: ImageFont.FreeTypeFont, width: float) -> list[str]:
             else:
                 line = trial
         lines.append(line)
-    return [ln for ln in lines if ln] or []
+    return [ln for ln in lines if ln]
 
 
 class Overlay:

@@ -155,7 +155,9 @@ class Segment:
 
     def pose_at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(eye, forward, up) at client time ``t``, held at the ends outside [start, end]."""
-        return self._tour.pose_at(min(max(float(t), self.start), self.end))
+        if t >= self.end:  # the Tour would wrap round to its start there
+            return self.eye[-1].copy(), self._tour.forward[-1].copy(), self._tour.up[-1].copy()
+        return self._tour.pose_at(max(float(t), self.start))
 
     def stop_at(self, t: float) -> tuple[int, bool]:
         """(playlist stop index, dwelling there) at ``t``: the stop dwelt at, or the next one headed to."""
