@@ -77,7 +77,7 @@ class Director:
         self.loop: FrameLoop | None = None
         self.compositor = None
         self.states: list[tuple[float, str]] = []
-        """(client time, state) of every state entered: what a test or the log follows."""
+        """(client time, state) of every state entered, at the exact time the machine entered it."""
         self._out: list = []
         self._plan: list = []  # the active segment's TourKeys; sent in parts
         self._plan_next = 0  # first key not yet sent
@@ -127,8 +127,8 @@ class Director:
         assert nav is not None and self.playlist is not None, "begin() first"
         if self.segment is None and (nav.controller.held or nav.controller._look.any()):
             self._input(t)  # a key held down or a drag still turning: the visitor is there
-        for state, _ in self.machine.tick(t):
-            self._enter(state, t)
+        for state, at in self.machine.tick(t):
+            self._enter(state, t, at)
         seg = self.segment
         if seg is not None and t >= seg.end:
             if seg.loops:
@@ -249,12 +249,13 @@ class Director:
 
     def _input(self, now: float | None = None) -> float:
         now = self.clock() if now is None else now
-        for state, _ in self.machine.input(now):
-            self._enter(state, now)
+        for state, at in self.machine.input(now):
+            self._enter(state, now, at)
         return now
 
-    def _enter(self, state: str, t: float) -> None:
-        self.states.append((t, state))
+    def _enter(self, state: str, t: float, at: float) -> None:
+        """``state`` was entered at ``at`` (exact), noticed at ``t``."""
+        self.states.append((at, state))
         if state == ATTRACT:
             self.language = self.config.kiosk.languages[0]
             self.caption_pose = None

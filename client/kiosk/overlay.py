@@ -166,6 +166,6 @@ class Overlay:
             d.text((lay.width / 2, y0 + h * 0.72), f"{state.countdown} s", font=small, fill=_TEXT, anchor="mm")
         if state.reconnecting:
             font = _font(self.font_path, max(14, self.caption_px // 2))
-            d.text((lay.width - m, m), "reconnecting…", font=font, fill=(255, 255, 255, 200), anchor="ra",
-                   stroke_width=2, stroke_fill=(0, 0, 0, 160))
+            d.text((lay.width - m, m), "reconnecting…", font=font, fill=_TEXT, anchor="ra", stroke_width=2,
+                   stroke_fill=(0, 0, 0, 120))
         return np.asarray(img, np.uint8)
