@@ -226,3 +226,49 @@ def test_the_command_line(tmp_path):
                           capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert done.returncode == 2
     assert done.stderr.strip() == "error: kiosk.toml: idle.countdown_s: must be at least 20 (WCAG 2.2.1)"
+
+
+# Records a tour in a real window: W moves the camera, M marks stops (through the window's key entry point,
+# as glfw's callback calls it), and the stops are written when the run ends.
+_RECORD = '''
+import sys
+import client.window as W
+from client.app import run_client
+
+url, scene, out = sys.argv[1:4]
+present, frames = W.Window.present, [0]
+
+def probe(self, renderer):
+    n = frames[0]
+    if n == 2:
+        self.on_key("m", True); self.on_key("m", False)
+        self.on_key("w", True)
+    elif n == 8:
+        self.on_key("w", False)
+        self.on_key("space", True); self.on_key("space", False)
+    present(self, renderer)
+    frames[0] += 1
+
+W.Window.present = probe
+run_client(url, scene, duration=3.0, viewport=(320, 180), window=True, navigate="fly", record_tour=out)
+'''
+
+
+def test_a_tour_recorded_in_the_window_is_a_tour_the_kiosk_reads(small_display, server, tmp_path):
+    from client.kiosk.config import load_stops
+
+    out = tmp_path / "recorded.toml"
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "XDG_SESSION_TYPE")}
+    env.update(DISPLAY=small_display)
+    done = subprocess.run([sys.executable, "-c", _RECORD, server.url, "auditorium", str(out)], capture_output=True,
+                          text=True, timeout=120, env=env, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-3000:]
+    stops = load_stops(out)
+    assert len(stops) == 2 and all(s.dwell_s == 6.0 and s.caption == {} for s in stops)
+    moved = np.subtract(stops[1].eye, stops[0].eye)
+    assert np.linalg.norm(moved) > 0.1 and np.dot(moved, stops[0].forward) > 0  # W flew ahead between the marks
+    # The same file as a kiosk tour's ``file``.
+    text = _config_text(server.url).split("  [[tours.stops]]")[0].replace('# file = "highlights.toml"',
+                                                                         f'file = "{out.name}"')
+    (tmp_path / "kiosk.toml").write_text(text)
+    assert [s.eye for s in load_config(tmp_path / "kiosk.toml").tours[0].stops] == [s.eye for s in stops]
