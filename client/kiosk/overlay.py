@@ -64,7 +64,7 @@ class Layout:
     def buttons(self, language: str = "") -> list[Button]:
         """The buttons along the bottom: home and language at the left, previous and next at the right."""
         s, m = self.size, self.margin
-        w = round(s * 1.5)
+        w = 3 * s // 2  # four of these and their gaps: at most 7 sizes, within the width
         y = self.height - m - s
         xs = {"home": m, "language": 2 * m + w, "previous": self.width - 2 * (m + w), "next": self.width - m - w}
         return [Button(name, label or language.upper(), xs[name], y, w, s) for name, label in BUTTONS]
