@@ -94,6 +94,7 @@ def run_client(
     governor: bool = True,
     calibrate: bool = True,
     plan: bool = False,
+    record_tour: Path | None = None,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
@@ -121,6 +122,8 @@ def run_client(
     ``calibrate`` measures the renderer's seconds per vertex before the hello (``client.calibrate``), the
     server's first guess for its cost model. ``plan`` (with a ``tour``) tells the server the path in the
     hello (``Hello.plan``): it then predicts the camera along the tour instead of extrapolating.
+    ``record_tour`` (with ``window`` and a navigator): M or Space marks the current pose as a tour stop, and the
+    stops are written there when the run ends (``client.kiosk.record``; nothing is written if none was marked).
     Raises ``client.connection.ClientError`` if the session cannot be opened, ``client.window.WindowError``
     if the window cannot.
     """
@@ -130,6 +133,8 @@ def run_client(
         raise ValueError("interactive navigation (fly, walk) needs window=True")
     if tour is not None and navigate != "tour":
         raise ValueError("a tour and interactive navigation exclude each other")
+    if record_tour is not None and navigate == "tour":
+        raise ValueError("recording a tour needs interactive navigation (fly or walk) in a window")
     urls = as_urls(url)  # raises ValueError now on an empty list
     if tour is not None:
         tour = list(tour)
@@ -155,6 +160,12 @@ def run_client(
     limits = {} if navigator is None else {"max_speed": navigator.max_speed, "max_turn": navigator.max_turn}
     if view is not None:
         view.controller = navigator
+    recorder = None
+    if record_tour is not None and view is not None and navigator is not None:
+        from .kiosk.record import StopRecorder
+
+        recorder = StopRecorder()
+        view.marker = lambda: recorder.mark(navigator.pose)
     start = time.monotonic()  # the client clock: every t is seconds since here
     client_id = uuid.uuid4().hex
     urls = tuple(with_client(u, client_id) for u in urls)
@@ -205,6 +216,8 @@ def run_client(
             run.governor = loop.governor.predictor.report()
         return run
     finally:
+        if recorder is not None and recorder.stops:
+            recorder.write(record_tour)
         if loop is not None and loop.splats is not None:
             loop.splats.release()
         renderer.release()

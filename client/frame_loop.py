@@ -19,7 +19,7 @@ import gc
 import queue
 import time
 from contextlib import contextmanager
-from typing import TYPE_CHECKING, Callable, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator, Protocol
 
 import numpy as np
 from websockets.exceptions import ConnectionClosed
@@ -40,7 +40,18 @@ from .schedule import Drawn, Schedule
 if TYPE_CHECKING:
     from .renderer import Renderer
 
-__all__ = ["FrameLoop", "run_frames", "quiet_collector"]
+__all__ = ["FrameLoop", "Director", "run_frames", "quiet_collector"]
+
+
+class Director(Protocol):
+    """Who moves the camera instead of a tour or a navigator (a kiosk's ``client.kiosk.director.Director``)."""
+
+    done: bool
+
+    def begin(self, welcome: Welcome, t: float, loop: "FrameLoop") -> None: ...
+    def pose_at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+    def outgoing(self, t: float) -> list: ...
+    def drawn(self, t: float, record: FrameRecord) -> None: ...
 
 
 class FrameLoop:
@@ -364,10 +375,14 @@ def run_frames(
     window=None,
     navigator: Navigator | None = None,
     tour_keys: list[dict] | None = None,
+    director: "Director | None" = None,
 ) -> None:
     """The frame loop proper; returns after ``duration`` s, when the connection ends or the window closes.
 
-    With a ``navigator`` the user's input moves the camera, from the welcome's start pose.
+    With a ``navigator`` the user's input moves the camera, from the welcome's start pose. A ``director``
+    (a kiosk's, ``client.kiosk.director``) moves it instead: it is told the session began (``begin``), gives
+    each frame's pose (``pose_at``) and messages to send (``outgoing``), and gets each drawn frame
+    (``drawn``), after the timed draw and before it is shown, to draw over; its ``done`` ends the loop.
     """
     if tour_keys is not None:
         tour = Tour(tour_keys)
@@ -376,11 +391,14 @@ def run_frames(
     if navigator is not None:
         navigator.place(welcome.start)
         tour = navigator
+    if director is not None:
+        director.begin(welcome, time.monotonic() - start, loop)
+        tour = director
     bounds = welcome.bounds
     cache, renderer = loop.cache, loop.renderer
     first = time.monotonic()
     frame = 0
-    while not loop.closed:
+    while not loop.closed and not (director is not None and director.done):
         now = time.monotonic()
         if now - first >= duration:
             break
@@ -388,6 +406,9 @@ def run_frames(
         eye, forward, up = tour.pose_at(t)
         # While the link is down, sends are skipped and frames go on from what is resident.
         loop.send(Camera(t=t, eye=eye.tolist(), forward=forward.tolist(), up=up.tolist()))
+        if director is not None:
+            for msg in director.outgoing(t):
+                loop.send(msg)
         loop.pump(None)
         far = far_plane(eye, bounds)
         rows, reps, weights = loop.drawn(t, (eye, forward, up, NEAR, far))
@@ -437,6 +458,8 @@ def run_frames(
         loop.upload_time = 0.0
         loop.applied_bytes = 0
         loop.run.frames.append(record)
+        if director is not None:
+            director.drawn(t, record)
         if on_frame is not None:
             on_frame(record)
         frame += 1

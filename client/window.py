@@ -17,8 +17,13 @@ Shift       move faster (×4 by default)
 Tab         toggle fly ↔ walk where the camera is
 F           toggle false colour (``Renderer.false_colour``)
 P           write a screenshot of the window (walkstream-<time>.png)
+M / Space   mark the current pose as a tour stop (with ``--record-tour``)
 Escape      close the window (the session ends)
 ==========  ===========================================================
+
+A click or tap (press and release within ``TAP_SLOP`` px) goes to the controller's ``tap(x, y)`` when it
+has one (a kiosk's buttons), in framebuffer pixels, y down. A ``public`` window (a kiosk's) gives every
+key to the controller: Escape, Tab, F and P do nothing there.
 
 Turning is rate-limited (``Navigator.max_turn``) and movement capped
 (``Navigator.max_speed``): the client announces both in its ``Hello``, and the
@@ -29,11 +34,14 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
-__all__ = ["Window", "WindowError", "KEY_NAMES"]
+__all__ = ["Window", "WindowError", "KEY_NAMES", "TAP_SLOP"]
+
+#: A press and release of the left button this close (px) is a tap, not a drag.
+TAP_SLOP = 12.0
 
 _DISPLAY_HINT = (
     "a window needs a display: set DISPLAY (or WAYLAND_DISPLAY), run under a virtual one with "
@@ -74,15 +82,16 @@ def _last_error(default: str) -> str:
 
 def _key_names(glfw: Any) -> dict[int, str]:
     """glfw key codes → the names ``Navigator.key`` and ``Window.on_key`` take."""
-    names = {getattr(glfw, f"KEY_{c.upper()}"): c for c in "wasdqefp"}
+    names = {getattr(glfw, f"KEY_{c.upper()}"): c for c in "wasdqefpm"}
     names.update({glfw.KEY_LEFT_SHIFT: "shift", glfw.KEY_RIGHT_SHIFT: "shift", glfw.KEY_TAB: "tab",
                   glfw.KEY_ESCAPE: "escape", glfw.KEY_LEFT: "left", glfw.KEY_RIGHT: "right",
-                  glfw.KEY_UP: "up", glfw.KEY_DOWN: "down"})
+                  glfw.KEY_UP: "up", glfw.KEY_DOWN: "down", glfw.KEY_SPACE: "space"})
     return names
 
 
 #: Every key name the window reacts to.
-KEY_NAMES = ("w", "a", "s", "d", "q", "e", "shift", "left", "right", "up", "down", "tab", "f", "p", "escape")
+KEY_NAMES = ("w", "a", "s", "d", "q", "e", "shift", "left", "right", "up", "down", "tab", "f", "p", "m", "space",
+             "escape")
 
 
 def _save_png(image: np.ndarray, path: Path) -> None:
@@ -103,11 +112,15 @@ class Window:
     vsync : swap on the display's refresh; off by default, the client paces frames itself
     controller : what keys and mouse drags drive (``client.navigation.Navigator``), or None
     screenshot_dir : where P writes its PNGs
+    fullscreen : cover the primary monitor at its current mode (``width`` and ``height`` become its size)
+    public : a kiosk's window: no key closes it or toggles anything; all go to the controller
+    marker : called when M or Space is pressed (``walkstream client --record-tour`` marks a stop)
     Raises ``WindowError`` when glfw cannot open a window (no display, no GL 3.3).
     """
 
     def __init__(self, width: int, height: int, title: str = "walkstream", vsync: bool = False, *,
-                 controller: _Input | None = None, screenshot_dir: str | Path = ".") -> None:
+                 controller: _Input | None = None, screenshot_dir: str | Path = ".", fullscreen: bool = False,
+                 public: bool = False, marker: Callable[[], None] | None = None) -> None:
         global _windows
         glfw = self._glfw = _glfw()
         self.width, self.height, self.title = int(width), int(height), str(title)
@@ -117,6 +130,8 @@ class Window:
         """PNGs written by P, in order."""
         self.renderer: Any = None
         """The renderer last presented (F toggles its ``false_colour``)."""
+        self.public, self.marker = bool(public), marker
+        self._pressed_at: tuple[float, float] | None = None  # where the left button went down, while it is
         self._handle = None
         self._initialised = False
         self._closed = False
@@ -136,7 +151,13 @@ class Window:
                                 (glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE), (glfw.OPENGL_FORWARD_COMPAT, True),
                                 (glfw.RESIZABLE, False), (glfw.DOUBLEBUFFER, True)):
                 glfw.window_hint(hint, value)
-            self._handle = glfw.create_window(self.width, self.height, self.title, None, None)
+            monitor = glfw.get_primary_monitor() if fullscreen else None
+            if fullscreen:
+                if not monitor:
+                    raise WindowError(f"no monitor to go fullscreen on ({_last_error('no reason given')})")
+                mode = glfw.get_video_mode(monitor)
+                self.width, self.height = int(mode.size.width), int(mode.size.height)
+            self._handle = glfw.create_window(self.width, self.height, self.title, monitor, None)
             if not self._handle:
                 raise WindowError(f"cannot open a {self.width}×{self.height} window with OpenGL 3.3 core "
                                   f"({_last_error('no reason given')}); {_DISPLAY_HINT}")
@@ -209,7 +230,12 @@ class Window:
 
     def on_key(self, name: str, pressed: bool) -> None:
         """A key went down or up, by name (``KEY_NAMES``); the glfw callback and tests both come here."""
-        if pressed and name == "escape":
+        if self.public:
+            if self.controller is not None:
+                self.controller.key(name, pressed)
+        elif pressed and name in ("m", "space") and self.marker is not None:
+            self.marker()
+        elif pressed and name == "escape":
             self.close()
         elif pressed and name == "f":
             self._toggle_false_colour()
@@ -227,6 +253,17 @@ class Window:
         if self.controller is not None:
             self.controller.look(dx, dy)
 
+    def on_tap(self, x: float, y: float) -> None:
+        """A click or tap at framebuffer pixel (x, y), y down: to the controller's ``tap``, if it has one."""
+        tap = getattr(self.controller, "tap", None)
+        if tap is not None:
+            tap(x, y)
+
+    def _pixels(self, x: float, y: float) -> tuple[float, float]:
+        """Window coordinates (glfw's cursor) → framebuffer pixels (they differ on a high-density screen)."""
+        w, h = self._glfw.get_window_size(self._handle)
+        return x * self.width / max(w, 1), y * self.height / max(h, 1)
+
     def _toggle_false_colour(self) -> None:
         if self.renderer is not None:
             setattr(self.renderer, "false_colour", not bool(getattr(self.renderer, "false_colour", False)))
@@ -239,6 +276,14 @@ class Window:
     def _on_button(self, handle: Any, button: int, action: int, mods: int) -> None:
         if button == self._glfw.MOUSE_BUTTON_LEFT:
             self._dragging = action == self._glfw.PRESS
+            x, y = self._glfw.get_cursor_pos(handle) if self._cursor is None else self._cursor
+            if action == self._glfw.PRESS:
+                self._pressed_at = (x, y)
+            elif self._pressed_at is not None:
+                x0, y0 = self._pressed_at
+                self._pressed_at = None
+                if abs(x - x0) <= TAP_SLOP and abs(y - y0) <= TAP_SLOP:
+                    self.on_tap(*self._pixels(x, y))
 
     def _on_cursor(self, handle: Any, x: float, y: float) -> None:
         # Deltas between events, not from a query: a query answers where the pointer is now,

@@ -51,6 +51,9 @@ def client(
                                        "(the frame governor; --no-governor draws the server's plan as it is)"),
     reconnect_timeout: float = typer.Option(10.0, min=0.0, help="seconds to keep redialling a lost connection "
                                             "(resuming the session, nothing re-sent); 0: a loss ends the run"),
+    record_tour: Optional[Path] = typer.Option(None, "--record-tour", help="with --window: M or Space marks the "
+                                               "current pose as a tour stop; the stops are written here (TOML, or "
+                                               "JSON for a .json name) on exit, as a kiosk tour's `file` reads them"),
 ) -> None:
     """Run the client over the scene's tour (headless, or in a window you can navigate) and print its frame times."""
     from client.app import run_client
@@ -64,13 +67,21 @@ def client(
         server_cli.fail(str(exc))
     if navigate != "tour" and not window:
         raise typer.BadParameter("fly and walk are driven by keys and mouse: add --window", param_hint="--navigate")
+    if record_tour is not None:
+        if not window:
+            raise typer.BadParameter("stops are marked with a key in the window: add --window",
+                                     param_hint="--record-tour")
+        if record_tour.is_dir() or not record_tour.parent.is_dir():
+            server_cli.fail(f"--record-tour {str(record_tour)!r}: give a file name in an existing folder")
+        if navigate == "tour":
+            navigate = "fly"  # recording is flying to the stops and marking them
     if duration is None:
         duration = float("inf") if window else 10.0
     try:
         run = run_client(
             url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3,
             screenshot=screenshot, solver=solver, predict=predict, morph=morph, window=window, navigate=navigate,
-            false_colour=false_colour, reconnect_timeout=reconnect_timeout, governor=governor,
+            false_colour=false_colour, reconnect_timeout=reconnect_timeout, governor=governor, record_tour=record_tour,
         )
     except (WindowError, ClientError) as exc:
         typer.echo(f"error: {exc}", err=True)
@@ -81,10 +92,59 @@ def client(
                            "resent": run.resent, "close_reason": run.close_reason, "governor": run.governor}))
 
 
+def kiosk(
+    config: Optional[Path] = typer.Argument(None, help="the kiosk's config file (TOML); see --example"),
+    example: bool = typer.Option(False, "--example", help="print a commented example config (the auditorium "
+                                 "scene) and exit"),
+    headless: bool = typer.Option(False, "--headless", help="render over EGL with no window (tests, the soak)"),
+    duration: Optional[float] = typer.Option(None, min=0.0, help="seconds to run (default: until stopped)"),
+    screenshot_every: Optional[float] = typer.Option(None, min=0.05, help="write what is shown every S seconds "
+                                                     "(needs --screenshot-dir)"),
+    screenshot_dir: Optional[Path] = typer.Option(None, help="where --screenshot-every writes its PNGs"),
+) -> None:
+    """Run a museum kiosk: the attract loop of its tours, a visitor's walk on touch, back after the idle countdown."""
+    if example:
+        from client.kiosk.example import EXAMPLE
+
+        typer.echo(EXAMPLE, nl=False)
+        return
+    if config is None:
+        raise typer.BadParameter("give the config file (walkstream kiosk --example prints one)",
+                                 param_hint="CONFIG")
+    if (screenshot_every is None) != (screenshot_dir is None):
+        raise typer.BadParameter("give --screenshot-every and --screenshot-dir together",
+                                 param_hint="--screenshot-every")
+    import logging
+    import math
+
+    from client.kiosk.config import ConfigError, load_config
+    from client.kiosk.run import KioskHooks, run_kiosk
+    from client.renderer import RendererError
+    from client.window import WindowError
+
+    try:
+        cfg = load_config(config)
+    except ConfigError as exc:
+        server_cli.fail(str(exc))
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    # The unattended parts (open hours, systemd watchdog, rotated logs, URL failover) subclass KioskHooks.
+    hooks = KioskHooks()
+    try:
+        run = run_kiosk(cfg, headless=headless, duration=math.inf if duration is None else duration,
+                        screenshot_every=screenshot_every, screenshot_dir=screenshot_dir, hooks=hooks)
+    except (WindowError, RendererError) as exc:
+        server_cli.fail(str(exc))
+    typer.echo(json.dumps(run.summary()))
+    if run.status:
+        raise typer.Exit(run.status)
+
+
 app.command()(server_cli.build)
 app.command()(server_cli.inspect)
 app.command()(server_cli.serve)
 app.command()(client)
+app.command()(kiosk)
 app.command()(bench_cli.demo)
 app.command()(bench_cli.loadtest)
 app.command("eval")(bench_cli.eval_)
