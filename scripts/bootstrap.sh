@@ -21,6 +21,8 @@ command -v ip >/dev/null 2>&1 || need_apt+=(iproute2)
 # The fleet page's browser test: Debian's chromium, headless, driven through chromedriver (selenium).
 [ -x /usr/bin/chromium ] || need_apt+=(chromium)
 [ -x /usr/bin/chromedriver ] || need_apt+=(chromium-driver)
+# The kiosk's captions: DejaVu Sans, rasterised by FreeType (Pillow).
+[ -f /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf ] || need_apt+=(fonts-dejavu-core)
 # systemd-analyze checks the kiosk's unit (deploy/walkstream-kiosk.service) in its test.
 command -v systemd-analyze >/dev/null 2>&1 || need_apt+=(systemd)
 if [ ${#need_apt[@]} -gt 0 ]; then

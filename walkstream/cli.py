@@ -20,6 +20,9 @@ from bench import cli as bench_cli
 from server import cli as server_cli
 from server.cli import SOLVER_HELP, check_solver
 
+#: sysexits' EX_CONFIG: a kiosk whose config is wrong exits with it (its systemd unit does not restart on it).
+EX_CONFIG = 78
+
 app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
@@ -101,6 +104,10 @@ def kiosk(
     screenshot_every: Optional[float] = typer.Option(None, min=0.05, help="write what is shown every S seconds "
                                                      "(needs --screenshot-dir)"),
     screenshot_dir: Optional[Path] = typer.Option(None, help="where --screenshot-every writes its PNGs"),
+    status_file: Optional[Path] = typer.Option(None, help="write what the kiosk is doing (frames, deltas, state, "
+                                               "camera, cache) to this JSON file twice a second"),
+    synthetic_visitors: Optional[int] = typer.Option(None, help="simulate visitors (taps, walks, leaving) from "
+                                                     "this random seed: the soak's load"),
 ) -> None:
     """Run a museum kiosk: the attract loop of its tours, a visitor's walk on touch, back after the idle countdown."""
     if example:
@@ -118,23 +125,32 @@ def kiosk(
     import math
 
     from client.kiosk.config import ConfigError, load_config
-    from client.kiosk.run import KioskHooks, run_kiosk
+    from client.kiosk.run import run_kiosk
     from client.renderer import RendererError
     from client.window import WindowError
 
     try:
         cfg = load_config(config)
-    except ConfigError as exc:
-        server_cli.fail(str(exc))
+    except ConfigError as exc:  # EX_CONFIG: the systemd unit does not restart a kiosk whose config is wrong
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(EX_CONFIG) from None
+    from client.kiosk.unattended import StatusFile, SyntheticVisitors, UnattendedHooks, chain, exit_on_unexpected
+
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    # The unattended parts (open hours, systemd watchdog, rotated logs, URL failover) subclass KioskHooks.
-    hooks = KioskHooks()
+    status = None if status_file is None else StatusFile(status_file, cfg.navigation.bounds or None)
+    visitors = None if synthetic_visitors is None else SyntheticVisitors(synthetic_visitors)
     try:
         run = run_kiosk(cfg, headless=headless, duration=math.inf if duration is None else duration,
-                        screenshot_every=screenshot_every, screenshot_dir=screenshot_dir, hooks=hooks)
+                        screenshot_every=screenshot_every, screenshot_dir=screenshot_dir, hooks=UnattendedHooks(),
+                        on_frame=chain(status, visitors))
     except (WindowError, RendererError) as exc:
         server_cli.fail(str(exc))
+    except ValueError as exc:  # a setting the config's own checks let through (a log file that cannot be opened)
+        typer.echo(f"error: {config}: {exc}", err=True)
+        raise typer.Exit(EX_CONFIG) from None
+    except Exception as exc:  # status 1: systemd restarts the kiosk (2 and 78 are for a person to fix)
+        raise typer.Exit(exit_on_unexpected(exc)) from None
     typer.echo(json.dumps(run.summary()))
     if run.status:
         raise typer.Exit(run.status)

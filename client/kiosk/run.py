@@ -268,8 +268,8 @@ def _dial(urls: list[str], client_id: str, hello: Hello, timeout: float, end: fl
     while time.monotonic() < end and not (view is not None and view.should_close) and not director.done:
         for url in urls:
             try:
-                ws, welcome, nbytes, _ = open_patiently(with_client(url, client_id), hello, timeout, 0.0)
-                return ws, welcome, nbytes, url
+                won = open_patiently(with_client(url, client_id), hello, timeout, timeout)  # one dial, its full timeout
+                return won.ws, won.welcome, won.nbytes, url
             except ClientError as exc:
                 log.warning("cannot open a session on %s: %s", url, exc)
         wait_until = min(end, time.monotonic() + DIAL_EVERY)

@@ -94,6 +94,11 @@ def test_it_runs_the_kiosk_as_a_notify_service_restarted_always(unit) -> None:
     # The nightly restart's exit status is the one the schedule exits with.
     assert str(RESTART_STATUS) in _one(unit, "Service", "RestartForceExitStatus").split()
     assert str(RESTART_STATUS) not in " ".join(svc.get("RestartPreventExitStatus", []))
+    # A wrong config (EX_CONFIG) waits for a person; an unexpected failure (1) is restarted.
+    from walkstream.cli import EX_CONFIG
+
+    prevent = " ".join(svc.get("RestartPreventExitStatus", [])).split()
+    assert str(EX_CONFIG) in prevent and "1" not in prevent
     assert {"DISPLAY", "XAUTHORITY"} <= {v.split("=", 1)[0] for v in svc["Environment"]}
     assert unit["Install"]["WantedBy"] == ["graphical.target"]
 
