@@ -9,9 +9,10 @@ walks on it with collision and the server predicts a walking camera within
 it — both read it through this one class.
 
 On the wire it is a msgpack map of the grid's shape, origin and cell size and
-the heights as little-endian float16 (a centimetre or better below 64 m,
-about 3 cm up to 500 m: the eye height above the ground is what matters),
-zstd-compressed: a 1024 × 1024 grid of a city is a few hundred kB.
+the heights quantised to 16 bits over the grid's own height range (65,534
+steps, 65,535 = not walkable: 3 cm steps on a 2 km mountain, a fraction of a
+millimetre in a flat city — float16 would give metre steps at a mountain's
+heights), zstd-compressed: a 1024 × 1024 grid of a city is a few hundred kB.
 """
 
 from __future__ import annotations
@@ -93,12 +94,23 @@ class WalkableGrid:
         return np.isfinite(self.height(xy))
 
 
+#: The quantised value that marks a cell no one can stand on.
+_BLOCKED = 65535
+
+
 def encode(grid: WalkableGrid) -> bytes:
     """The grid as bytes for ``Welcome.walkable``."""
     ny, nx = grid.shape
-    heights = grid.ground.astype("<f2").tobytes()
-    return msgpack.packb({"shape": [ny, nx], "origin": list(grid.origin), "cell": grid.cell,
-                          "f16": zstandard.ZstdCompressor(level=9).compress(heights)}, use_bin_type=True)
+    g = grid.ground.astype(np.float64)
+    ok = np.isfinite(g)
+    lo = float(g[ok].min()) if ok.any() else 0.0
+    hi = float(g[ok].max()) if ok.any() else 0.0
+    step = (hi - lo) / (_BLOCKED - 1) if hi > lo else 1.0
+    q = np.full(g.shape, _BLOCKED, "<u2")
+    q[ok] = np.round((g[ok] - lo) / step).astype("<u2")
+    return msgpack.packb({"shape": [ny, nx], "origin": list(grid.origin), "cell": grid.cell, "low": lo,
+                          "step": step, "u16": zstandard.ZstdCompressor(level=9).compress(q.tobytes())},
+                         use_bin_type=True)
 
 
 def decode(data: bytes) -> WalkableGrid:
@@ -108,10 +120,14 @@ def decode(data: bytes) -> WalkableGrid:
         ny, nx = (int(v) for v in m["shape"])
         if ny <= 0 or nx <= 0 or ny * nx > MAX_CELLS:
             raise ValueError(f"shape {ny} × {nx} is empty or over {MAX_CELLS} cells")
-        raw = zstandard.ZstdDecompressor().decompress(m["f16"], max_output_size=2 * ny * nx)
+        low, step = float(m["low"]), float(m["step"])
+        if not (np.isfinite(low) and np.isfinite(step) and step > 0):
+            raise ValueError(f"height range low={low!r}, step={step!r} is not finite and positive")
+        raw = zstandard.ZstdDecompressor().decompress(m["u16"], max_output_size=2 * ny * nx)
         if len(raw) != 2 * ny * nx:
             raise ValueError(f"{len(raw)} bytes of heights for {ny} × {nx} cells")
-        ground = np.frombuffer(raw, "<f2").astype(np.float32).reshape(ny, nx)
+        q = np.frombuffer(raw, "<u2").reshape(ny, nx)
+        ground = np.where(q == _BLOCKED, np.nan, low + q.astype(np.float64) * step).astype(np.float32)
         return WalkableGrid(origin=tuple(float(v) for v in m["origin"]), cell=float(m["cell"]), ground=ground)
     except ProtocolError:
         raise
