@@ -31,6 +31,7 @@ from proto.walkable import WalkableGrid, decode as decode_walkable
 from .attract import ATTRACT, COUNTDOWN, AttractMachine, reported_state
 from .config import KioskConfig
 from .heartbeat import Meter, rss_bytes
+from .hours import CLOSED_LOOKS
 from .overlay import Overlay, OverlayState
 from .stops import Playlist, Segment, playlist_stops
 from .walking import KioskNavigator
@@ -45,8 +46,8 @@ __all__ = ["Director", "PLAN_BYTES", "PLAN_LEAD"]
 PLAN_BYTES = 48 * 1024
 #: The next part of a long plan goes this many seconds before the last one runs out.
 PLAN_LEAD = 3.0
-#: Darkening outside the open hours, by ``schedule.closed``.
-DIM = {"dim": 0.6, "black": 1.0}
+#: The slowest the attract loop plays (a black screen's loop need not stand still: it costs nothing to move).
+SLOWEST = 0.05
 #: Frame records a kiosk keeps (it runs all day: the run's lists must not grow with it).
 KEEP_RECORDS = 600
 
@@ -70,7 +71,7 @@ class Director:
         self.stop = 0
         """The current stop (index into ``playlist.stops``): dwelt at, headed to, or last visited."""
         self.caption_pose: np.ndarray | None = None  # the visitor stands where a "next" left them: keep its caption
-        self.closed: str | None = None
+        self._closed: str | None = None
         """Outside the open hours: "dim" or "black" (set by the runner's schedule hook); None: open."""
         self.done = False
         """Set to end the run (the runner's exit hook)."""
@@ -204,7 +205,7 @@ class Director:
 
     def overlay_state(self, t: float) -> OverlayState:
         return OverlayState(caption=self.caption, language=self.language, countdown=self.machine.seconds_left(t),
-                            reconnecting=not self.link_up, dim=DIM.get(self.closed or "", 0.0))
+                            reconnecting=not self.link_up, dim=1.0 - CLOSED_LOOKS[self.closed][0] if self.closed else 0.0)
 
     # ----------------------------------------------------------------- input (the window's callbacks)
 
@@ -287,8 +288,25 @@ class Director:
             self.navigator.clear_input()
 
     def _play(self, pose: tuple, t: float, stop: int) -> None:
-        self._start(self.playlist.segment(pose, t, stop, loop=True), t)
+        rate = CLOSED_LOOKS[self._closed][1] if self._closed else 1.0
+        self._start(self.playlist.segment(pose, t, stop, loop=True, rate=max(rate, SLOWEST)), t)
         self.stop = stop
+
+    @property
+    def closed(self) -> str | None:
+        """None while the kiosk is open, else how it looks closed ("dim": darkened, the attract loop slowed;
+        "black"). Set by the runner from the opening hours; a change replays the attract loop at its rate."""
+        return self._closed
+
+    @closed.setter
+    def closed(self, value: str | None) -> None:
+        if value == self._closed:
+            return
+        self._closed = value
+        seg = self.segment
+        if seg is not None and seg.loops and self.playlist is not None and self._pose is not None:
+            t = self.clock()
+            self._play(self._pose, t, seg.stop_at(t)[0])  # on from here to the stop it is at or heading to
 
     def _start(self, segment: Segment, t: float) -> None:
         self.segment = segment

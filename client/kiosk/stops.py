@@ -194,9 +194,12 @@ class Playlist:
         return plan_leg(a, self.pose(i), speed=s.speed, turn=s.turn, walk=s.mode == "walk", ground=self.ground,
                         eye_height=self.eye_height)
 
-    def segment(self, pose: tuple, t0: float, stop: int, *, loop: bool = True) -> Segment:
+    def segment(self, pose: tuple, t0: float, stop: int, *, loop: bool = True, rate: float = 1.0) -> Segment:
         """From ``pose`` at client time ``t0`` to ``stop`` and its dwell; with ``loop``, on round every stop
-        back to ``stop`` (arriving there at ``Segment.end``, ready for the next loop)."""
+        back to ``stop`` (arriving there at ``Segment.end``, ready for the next loop). ``rate`` < 1 plays it
+        slower (legs and dwells alike: the slow attract loop outside opening hours)."""
+        if not (np.isfinite(rate) and 0 < rate <= 1):
+            raise ValueError(f"rate must lie in (0, 1], got {rate!r}")
         n = len(self.stops)
         order = [(stop + k) % n for k in range(n)] + [stop] if loop else [stop]
         ts, eyes, fs, us, arrive, leave = [], [], [], [], [], []
@@ -219,5 +222,7 @@ class Playlist:
         if len(np.concatenate(ts)) == 1:  # one stop, no dwell, already there: hold it
             ts.append([t + 1.0]); eyes.append(here[0][None]); fs.append(here[1][None]); us.append(here[2][None])
         stops_seen = order[:-1] if loop else order
-        return Segment(np.concatenate(ts), np.concatenate(eyes), np.concatenate(fs), np.concatenate(us),
-                       np.asarray(stops_seen, np.int64), np.asarray(arrive), np.asarray(leave), loop)
+        t0 = float(t0)
+        slow = (lambda x: t0 + (np.asarray(x, np.float64) - t0) / rate) if rate != 1.0 else np.asarray
+        return Segment(slow(np.concatenate(ts)), np.concatenate(eyes), np.concatenate(fs), np.concatenate(us),
+                       np.asarray(stops_seen, np.int64), slow(arrive), slow(leave), loop)
