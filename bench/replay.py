@@ -317,7 +317,8 @@ class Replayer:
                 vmap = decode_morph(mblob, n_fine=int(self.index.rep_vertices[rep]))
                 if vmap.size and int(vmap.max()) >= c.vertices:
                     continue  # as the client's cache: a map beyond the coarse level builds no target
-                self.renderer.set_morph_target(rep, np.ascontiguousarray(c.positions[vmap], np.float32))
+                self.renderer.set_morph_target(rep, np.ascontiguousarray(c.positions[vmap], np.float32),
+                                               None if c.colours is None else c.colours[vmap])
             self._target[ids] = True
 
     def _ensure_groups(self, groups: np.ndarray) -> None:

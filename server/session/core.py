@@ -277,6 +277,7 @@ class Session:
                 token=self.token,
                 resumed=resumed,
                 held=self.mirror.held[0],
+                sun=index.meta.get("sun"),
             ),
             self._ping(now),
         ]
