@@ -164,7 +164,8 @@ class Renderer:
         )
         self._uniforms = [
             {name: prog.get(name, None) for name in ("u_view_projection", "u_eye", "u_up", "u_sun", "u_false_colour",
-                                                     "u_level_scale", "u_eye_wrap", "u_object_colours")}
+                                                     "u_level_scale", "u_eye_wrap", "u_object_colours",
+                                                     "u_light_mix")}
             for prog in self.programs
         ]
 
@@ -424,6 +425,7 @@ class Renderer:
             "u_sun": tuple(key_light(forward, up) if self.sun is None else self.sun),
             "u_false_colour": bool(self.false_colour),
             "u_object_colours": self.colours == "objects",
+            "u_light_mix": (0.5, 0.6) if self.sun is None else (0.8, 0.45),
             "u_level_scale": float(self.false_colour_levels),
             "u_eye_wrap": tuple(eye - _TEXTURE_PERIOD * np.floor(eye / _TEXTURE_PERIOD)),
         }

@@ -7,7 +7,8 @@ The stages, each with its own progress count:
    morphs), its errors and its payloads, in worker processes;
 2. **hlod** — when the scene has many buildings, an HLOD tree over them whose
    inner nodes carry merged, simplified proxies (one root covers the city);
-3. **terrain** — each height grid becomes a quadtree of patches with skirts;
+3. **terrain** — each height grid becomes a quadtree of patches with skirts; a scene
+   without terrain first gets a ground under its objects (``server.scene.ground``);
 4. **trees** — tree models become prefix-ordered point sets, instances are
    grouped ≤ 64 per quadtree leaf;
 5. **write** — everything goes into one ``SceneWriter`` transaction, parents
@@ -26,7 +27,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -39,6 +40,7 @@ from .blocks import oriented_box
 from .colours import Appearance, coloured_levels, coloured_mesh, constant
 from .palette import class_colour
 from .fidelity import Bounds, Fidelity
+from .ground import GROUND_NAME, ground_grid, needs_ground
 from .index import HLOD, MESH, TERRAIN, TREES
 from .ladder import shaped_chain, shaped_source_chain
 from .scans import model_source
@@ -74,6 +76,7 @@ class BuildOptions:
                       (``server.scene.ladder``); False: plain quadric chains, unmeasured
     bounds          : silhouette IoU / area ratio / FLIP a kept level or proxy must reach
     max_proxy_faces : most faces of an HLOD proxy
+    ground          : lay a ground under a scene that has no terrain (``server.scene.ground``)
     """
 
     hlod: bool | str = "auto"
@@ -88,6 +91,7 @@ class BuildOptions:
     shape_guard: bool = True
     bounds: Bounds = Bounds()
     max_proxy_faces: int = 4096
+    ground: bool = True
 
 
 #: Full-detail vertices per object from which HLOD proxies' errors are measured.
@@ -244,6 +248,9 @@ def build_store(
     started = time.perf_counter()
     tick = progress or (lambda stage, done, total: None)
     source.check()
+    bare = needs_ground(source)
+    if options.ground and bare:
+        source = replace(source, grids=[*source.grids, ground_grid(source)])
     origin = scene_origin(source) if recentre else np.zeros(3)
     workers = options.workers or default_workers()
     timings: dict[str, float] = {}
@@ -368,7 +375,10 @@ def build_store(
                                parent=int(parent_of[i]), morphs=rows.morphs, fidelity=rows.fidelity)
             counts["mesh"] += 1
             wrote()
+        tour_box = None  # the generated ground's padding is no part of what a tour looks at
         for tname, t, colour in terrains:
+            if tname == GROUND_NAME and tour_box is None:
+                tour_box = writer.bounds
             ids: list[int] = []
             patches = [t.mesh(j) for j in range(len(t.parent))]
             box_lo, box_hi = _subtree_boxes(t.parent, [p.min(axis=0) for p, _ in patches],
@@ -394,13 +404,16 @@ def build_store(
                                    counts=[(int(groups.points[g]), 0)])
                 counts["trees"] += 1
                 wrote()
+        if tour_box is not None and groups is not None and len(groups.group_first):
+            tour_box = (np.minimum(tour_box[0], groups.lo.min(axis=0)), np.maximum(tour_box[1], groups.hi.max(axis=0)))
         if tour is None:
-            tour_keys = orbit_tour(*writer.bounds)
+            tour_keys = orbit_tour(*(tour_box if tour_box is not None else writer.bounds))
         else:
             tour_keys = [{**k, "eye": (np.asarray(k["eye"], np.float64) - origin).tolist()} for k in tour]
         writer.set_tour(tour_keys)
         writer.set_meta(shape_guard={"levels": levels, **({"proxies": proxies} if proxies else {})},
                         origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {}, sun=list(DEFAULT_SUN),
+                        ground="generated" if tour_box is not None else ("none" if bare else "terrain"),
                         sources=list(source.sources), kinds=counts,
                         tree_instances=len(source.trees) if source.trees is not None else 0,
                         tree_models=[{"name": pm.name, "source": model_source(tm), "points": len(pm)}
