@@ -17,8 +17,11 @@ buildings' own ground surfaces do not fight it in the depth buffer. On flat
 data that is the lowest ground height under the footprints; on a slope
 (Berlin's blocks stand 4 m apart in height) no building stands on stilts.
 
-A scene that has terrain — a height grid, or an object of a terrain class
-(``TERRAIN_CLASSES``: a TIN relief, a generated city's ground tiles) — gets none.
+Only a city gets one — a scene with buildings (``BUILDING_CLASSES``: a CityJSON or
+CityGML city, an IFC house, a glTF whose nodes are named ``house_…``); a glTF of a
+chair stays a chair in space. A scene that has terrain — a height grid, or an object
+of a terrain class (``TERRAIN_CLASSES``: a TIN relief, a generated city's ground
+tiles) — gets none.
 """
 
 from __future__ import annotations
@@ -29,19 +32,21 @@ from scipy.interpolate import griddata
 
 from .source import HeightGrid, SourceScene
 
-__all__ = ["GROUND_NAME", "TERRAIN_CLASSES", "SINK", "needs_ground", "ground_grid"]
+__all__ = ["GROUND_NAME", "TERRAIN_CLASSES", "BUILDING_CLASSES", "SINK", "needs_ground", "ground_grid"]
 
 #: The generated ground's grid name (its patches are ``ground/patch_<j>``) and class (``server.scene.palette``).
 GROUND_NAME = "ground"
 #: Object classes that are the scene's ground already.
 TERRAIN_CLASSES = ("terrain", "tinrelief", "ground", "relieffeature", "landuse")
+#: Object classes that make a scene a city, which stands on a ground.
+BUILDING_CLASSES = ("building", "buildingpart", "building_part", "house", "bridge", "bridgepart", "tunnel")
 #: How far below the objects' bases the ground lies (metres).
 SINK = 0.05
 
 
 def needs_ground(source: SourceScene) -> bool:
-    """Whether the scene has meshes but neither a height grid nor an object of a terrain class."""
-    if source.grids or not source.objects:
+    """Whether the scene is a city (it has buildings) with neither a height grid nor an object of a terrain class."""
+    if source.grids or not any(o.cls.lower() in BUILDING_CLASSES for o in source.objects):
         return False
     return not any(o.cls.lower() in TERRAIN_CLASSES for o in source.objects)
 

@@ -150,3 +150,25 @@ def test_a_gltf_base_colour_factor_is_drawn(server, stores, tmp_path) -> None:
     centre = image[H // 2 - 5 : H // 2 + 5, W // 2 - 5 : W // 2 + 5].reshape(-1, 3)
     # (40, 90, 220) lit: blue dominates in every pixel, in the factor's proportions.
     assert (centre[:, 2] > 1.8 * centre[:, 0]).all() and (centre[:, 2] > 1.3 * centre[:, 1]).all()
+
+
+def test_the_client_command_draws_data_colours_or_object_tints(server, stores, tmp_path) -> None:
+    """``walkstream client --colour objects`` is the debugging view of tints; the default draws the data."""
+    import subprocess
+    import sys
+
+    name, _ = _origin(stores["fzk"])
+    red = {}
+    for colour in ("data", "objects"):
+        png = tmp_path / f"{colour}.png"
+        done = subprocess.run([sys.executable, "-m", "walkstream", "client", server.url, "--scene", name,
+                               "--duration", "4", "--width", str(W), "--height", str(H), "--target-ms", "250",
+                               "--colour", colour, "--screenshot", str(png)], capture_output=True, text=True,
+                              timeout=120)
+        assert done.returncode == 0, done.stderr
+        image = np.asarray(Image.open(png).convert("RGB")).astype(np.int64)
+        red[colour] = ((image[..., 0] > 1.6 * image[..., 1]) & (image[..., 0] > 1.6 * image[..., 2])).mean()
+    assert red["data"] > 0.05 and red["objects"] < 0.01  # the roof's red; tints are pastel
+    done = subprocess.run([sys.executable, "-m", "walkstream", "client", server.url, "--colour", "plaid"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "plaid" in done.stderr

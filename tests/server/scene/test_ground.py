@@ -62,6 +62,8 @@ def test_only_scenes_without_terrain_need_a_ground() -> None:
     city = SourceScene(objects=[_box(0, 0, 0)])
     assert needs_ground(city)
     assert not needs_ground(SourceScene())
+    chair = SourceObject("chair_1", "chair", city.objects[0].levels)
+    assert not needs_ground(SourceScene(objects=[chair]))  # a chair in space is no city
     assert not needs_ground(dataclasses.replace(city, grids=[HeightGrid("dem", np.zeros((2, 2)), (0, 0), (1, 1))]))
     tin = SourceObject("tin", "terrain", [Mesh(np.eye(3), [[0, 1, 2]])])
     assert not needs_ground(dataclasses.replace(city, objects=[*city.objects, tin]))
