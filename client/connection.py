@@ -27,6 +27,7 @@ replica.
 
 from __future__ import annotations
 
+import logging
 import math
 import queue
 import random
@@ -47,6 +48,8 @@ from proto.messages import MAX_HELD_BYTES, PROTOCOL_VERSION, Delta, Error, Hello
 
 __all__ = ["ClientError", "Arrived", "Closed", "Redialled", "GaveUp", "Item", "Link", "Backoff", "open_patiently",
            "with_client", "as_urls", "BACKOFF", "CLOSE_TIMEOUT", "FINAL_CODES"]
+
+log = logging.getLogger("walkstream.client")
 
 #: Redial backoff between rounds of dialling: the first after 50 ms, doubling to at most 4 s. The cap bounds
 #: how long a kiosk stays dark to a server that is back: the next round starts at most this long after it
@@ -318,6 +321,8 @@ def _dial(urls: tuple[str, ...], first: int, hello: Hello, timeout: float, patie
         if not answered and not wait_unreachable:
             raise ClientError(last)
         rnd += 1
+        if rnd & (rnd - 1) == 0:  # rounds 1, 2, 4, 8, …: a long outage leaves a trace, not a flood
+            log.warning("no server welcomed the session (round %d, %d attempts); last: %s", rnd, attempts, last)
         delay = backoff.wait(rnd)
         if time.monotonic() + delay >= deadline:
             raise _OutOfPatience(f"no server welcomed the session within {patience:g} s "

@@ -53,3 +53,20 @@ def test_one_url_or_several() -> None:
     for bad in ([], "", ["ws://a/ws", ""]):
         with pytest.raises(ValueError, match="^urls: "):
             as_urls(bad)
+
+
+def test_a_dial_that_keeps_failing_says_why_in_the_log_at_doubling_rounds(caplog):
+    import logging
+
+    from client.connection import Backoff, ClientError, open_patiently
+    from proto.messages import PROTOCOL_VERSION, Hello
+
+    hello = Hello(protocol=PROTOCOL_VERSION, scene="demo", viewport=[64, 64])
+    with caplog.at_level(logging.WARNING, logger="walkstream.client"):
+        with pytest.raises(ClientError, match="within"):
+            open_patiently(["ws://127.0.0.1:1/ws"], hello, 0.2, 0.6, wait_unreachable=True,
+                           backoff=Backoff(base=0.01, cap=0.02, random=lambda: 1.0))
+    rounds = [r.getMessage() for r in caplog.records if "no server welcomed" in r.getMessage()]
+    assert rounds and "127.0.0.1:1" in rounds[0]
+    numbers = [int(m.split("round ")[1].split(",")[0]) for m in rounds]
+    assert all(n & (n - 1) == 0 for n in numbers)  # 1, 2, 4, …: a long outage is not a flood
