@@ -68,5 +68,7 @@ def test_the_root_app_has_every_command_in_order():
     from walkstream.cli import app
 
     root = get_command(app)
-    assert list(root.commands) == ["build", "inspect", "serve", "client", "demo", "loadtest", "eval", "bench"]
-    assert list(root.commands["bench"].commands) == ["build", "select", "predict", "render", "benefit", "encoding", "hostile"]
+    assert list(root.commands) == ["build", "inspect", "serve", "client", "kiosk", "demo", "loadtest", "eval",
+                                  "bench"]
+    assert list(root.commands["bench"].commands) == ["build", "select", "predict", "render", "benefit", "encoding", "hostile",
+                                                   "soak"]

@@ -123,9 +123,14 @@ def test_a_cut_network_never_gives_a_black_frame_and_deltas_flow_again(demo_stor
             before = {p.name for p in shots.glob("*.png")}
             proxy.cut()
             _poll(lambda: not state().get("connected", True), 30, "the kiosk noticing the cut")
-            frames = state()["frames"]
-            _poll(lambda: state().get("frames", 0) > frames + 20, 60, "frames drawn during the outage")
-            during = sorted(p for p in shots.glob("*.png") if p.name not in before)
+            frames, cut = state()["frames"], {p.name for p in shots.glob("*.png")}
+
+            def outage_shots() -> list[Path]:
+                return sorted(p for p in shots.glob("*.png") if p.name not in cut)
+
+            _poll(lambda: state().get("frames", 0) > frames + 20 and len(outage_shots()) >= 5, 60,
+                  "frames and screenshots during the outage")
+            during = outage_shots()[:-1]  # the newest may still be being written
             proxy.restore()
             back, deltas = time.monotonic(), state()["deltas"]
             _poll(lambda: state().get("deltas", 0) > deltas, 30, "deltas after the network's return")
