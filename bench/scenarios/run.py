@@ -499,17 +499,31 @@ def run_scenarios(
     progress: Tick | None = None,
     seed: int = 0,
     duration_scale: float = 1.0,
+    tour: str | None = None,
 ) -> list[dict]:
     """Run the named scenarios (default: all, in ``SCENARIOS`` order) with ``method`` against one server on
     ``store``; one result each (``name``, ``title``, ``passed``, ``line``, ``figures``). A scenario that
     raises is a FAIL with the error in its line, and the rest still run. ``progress("scenarios", done,
-    total)`` after each; ``duration_scale`` shortens the phases (tests)."""
+    total)`` after each; ``duration_scale`` shortens the phases (tests); ``tour`` names the store's tour the
+    scenarios take their anchor and segments from (default: its default tour)."""
     names = list(SCENARIOS) if names is None else list(names)
     unknown = [n for n in names if n not in SCENARIOS]
     if unknown:
         raise ValueError(f"unknown scenario(s) {', '.join(unknown)}; known: {', '.join(SCENARIOS)}")
+    index = None
+    if tour is not None:
+        from dataclasses import replace
+
+        from server.scene.store import SceneStore
+        from server.scene.tour import default_tour_name, tour_for
+
+        with SceneStore.open(store) as s:
+            keys, start = tour_for(s.index, tour)
+            own = tour == default_tour_name(s.index)  # the store's viewpoints are times of its default tour
+            index = replace(s.index, tour=keys, start=start,
+                            meta=s.index.meta if own else {**s.index.meta, "viewpoints": {}})
     ctx = Context(Path(store), scene, target_ms=float(target_ms), method=method, viewport=tuple(viewport), tau=tau,
-                  seed=seed, scale=float(duration_scale))
+                  seed=seed, scale=float(duration_scale), index=index)
     results: list[dict] = []
     if progress is not None:
         progress("scenarios", 0, len(names))

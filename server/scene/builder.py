@@ -1,4 +1,4 @@
-"""Turn a ``SourceScene`` into a scene store: LOD chains, hierarchies, point models, tour.
+"""Turn a ``SourceScene`` into a scene store: LOD chains, hierarchies, point models, tours.
 
 The stages, each with its own progress count:
 
@@ -42,8 +42,9 @@ from .scans import model_source
 from .lod import build_chain, chain_from_levels
 from .source import Mesh, SourceScene
 from .store import SceneStore
+from .streets import BUILDING_CLASSES
 from .surface import is_closed
-from .tour import orbit_tour
+from .tour import named_tours, orbit_tour, scene_tours
 from .workers import POOL_MIN_JOBS, default_workers, pool_map
 from .writer import SceneWriter, encode_levels
 
@@ -71,6 +72,8 @@ class BuildOptions:
                       (``server.scene.ladder``); False: plain quadric chains, unmeasured
     bounds          : silhouette IoU / area ratio / FLIP a kept level or proxy must reach
     max_proxy_faces : most faces of an HLOD proxy
+    street_tours    : make the ``walk`` and ``flyover`` tours where the scene's streets allow them
+                      (``server.scene.tour.scene_tours``)
     """
 
     hlod: bool | str = "auto"
@@ -85,12 +88,13 @@ class BuildOptions:
     shape_guard: bool = True
     bounds: Bounds = Bounds()
     max_proxy_faces: int = 4096
+    street_tours: bool = True
 
 
 #: Full-detail vertices per object from which HLOD proxies' errors are measured.
 HLOD_POINTS = 48
 
-_BUILDING_CLASSES = ("building", "buildingpart", "building_part", "house")
+_BUILDING_CLASSES = BUILDING_CLASSES
 
 
 @dataclass
@@ -223,11 +227,14 @@ def build_store(
     options: BuildOptions = BuildOptions(),
     progress: Progress | None = None,
     recentre: bool = True,
+    default_tour: str | None = None,
 ) -> dict:
     """Build ``source`` into a new store at ``path`` (atomically); returns a summary.
 
-    tour       : the camera tour in source coordinates; default: an orbit of the scene
-    viewpoints : named tour times (e.g. F&S's A, B, C), recorded in meta
+    tour       : the camera tour in source coordinates (named "scene"); default: an orbit of the scene
+                 (named "orbit"); either is the default tour, beside the street tours (``options``)
+    viewpoints : named tour times (e.g. F&S's A, B, C) of that tour, recorded in meta
+    default_tour: the name of a street tour ("walk", "flyover") to make the default where the scene has it
     """
     started = time.perf_counter()
     tick = progress or (lambda stage, done, total: None)
@@ -376,10 +383,11 @@ def build_store(
                 counts["trees"] += 1
                 wrote()
         if tour is None:
-            tour_keys = orbit_tour(*writer.bounds)
+            writer.set_tour(orbit_tour(*writer.bounds), name="orbit", kind="orbit")
         else:
-            tour_keys = [{**k, "eye": (np.asarray(k["eye"], np.float64) - origin).tolist()} for k in tour]
-        writer.set_tour(tour_keys)
+            writer.set_tour([{**k, "eye": (np.asarray(k["eye"], np.float64) - origin).tolist()} for k in tour])
+        if options.street_tours:
+            writer.make_tours(_street_tours, prefer=(default_tour,) if default_tour else ())
         writer.set_meta(shape_guard={"levels": levels, **({"proxies": proxies} if proxies else {})},
                         origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {},
                         sources=list(source.sources), kinds=counts,
@@ -394,6 +402,7 @@ def build_store(
         flat = idx.flat
         triangles = int(idx.rep_faces[full[flat]].sum())
         height = idx.height
+        tours = {name: round(float(t["duration"]), 1) for name, t in named_tours(idx).items()}
     return {
         "path": str(path),
         "objects": counts,
@@ -401,12 +410,18 @@ def build_store(
         "triangles": triangles,
         "tree_instances": len(source.trees) if source.trees is not None else 0,
         "hierarchy_depth": height,
+        "tours": tours,
         "bytes": Path(path).stat().st_size,
         "seconds": round(time.perf_counter() - started, 2),
         "stages": {k: round(v, 2) for k, v in timings.items()},
         "levels": levels,
         **({"proxies": proxies} if proxies is not None else {}),
     }
+
+
+def _street_tours(store: SceneStore) -> dict:
+    """The walk and flyover of a finished store (``SceneWriter.make_tours``)."""
+    return scene_tours(store.index, store.walkable())
 
 
 def _guard_summary(chains: list[ChainRows], tree, bounds: Bounds) -> tuple[dict, dict | None]:

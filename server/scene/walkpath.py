@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from proto.walkable import WalkableGrid
 
-__all__ = ["largest_region", "walk_path", "NoPath"]
+__all__ = ["largest_region", "walk_path", "walk_distances", "NoPath"]
 
 
 class NoPath(ValueError):
@@ -57,6 +57,26 @@ def _line_open(grid: WalkableGrid, a: np.ndarray, b: np.ndarray) -> bool:
     n = max(2, int(np.ceil(np.linalg.norm(b - a) / (0.25 * grid.cell))) + 1)
     s = np.linspace(0.0, 1.0, n)[:, None]
     return bool(grid.walkable(a + s * (b - a)).all())
+
+
+def walk_distances(grid: WalkableGrid, points, limit: float = np.inf) -> np.ndarray:
+    """(k, k) float64: the length (m) of the shortest walk on the grid's eight-neighbour graph between each pair
+    of ``points`` ((k, 2) x, y), inf where there is none, where an end is not on walkable ground, or where the
+    walk is longer than ``limit`` (searches stop there, which keeps them cheap on a large grid)."""
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    out = np.full((len(pts), len(pts)), np.inf)
+    open_ = np.isfinite(grid.ground)
+    rows, cols, inside = grid.cells(pts)
+    ok = inside & open_[rows, cols]
+    if not ok.any():
+        return out
+    nodes = rows * grid.shape[1] + cols
+    dist = dijkstra(_graph(open_, grid.cell), directed=False, indices=nodes[ok], limit=limit)
+    dist = np.atleast_2d(dist)
+    sub = np.full((int(ok.sum()), len(pts)), np.inf)
+    sub[:, ok] = dist[:, nodes[ok]]
+    out[ok] = sub
+    return out
 
 
 def walk_path(grid: WalkableGrid, start, goal) -> np.ndarray:
