@@ -54,6 +54,8 @@ DETOUR = 2.0
 #: The stops take up to this share of a loop's budget as shortest walks; the rest is for going round by
 #: other streets than the ones walked already.
 STOPS_SHARE = 0.75
+#: Walking distances between blocks are measured on a grid of at most this many cells.
+_DISTANCE_CELLS = 1 << 17
 #: Peaks of the density lower than this share of the highest are no dense block.
 _PEAK_SHARE = 0.05
 #: Local maxima examined at most (a flat density has a plateau of them).
@@ -155,6 +157,18 @@ def _ring(centre: np.ndarray, radius: float, n: int = 6) -> np.ndarray:
     return centre + radius * np.column_stack([np.cos(a), np.sin(a)])
 
 
+def _coarse(ground: WalkableGrid) -> WalkableGrid:
+    """The grid coarsened to at most ``_DISTANCE_CELLS`` cells, a cell open where any of its own is: walking
+    distances between blocks only choose and order them, and a coarse grid gives them cheaply."""
+    ny, nx = ground.shape
+    f = max(1, int(np.ceil(np.sqrt(ny * nx / _DISTANCE_CELLS))))
+    if f == 1:
+        return ground
+    open_ = np.pad(np.isfinite(ground.ground), ((0, -ny % f), (0, -nx % f)))
+    any_open = open_.reshape(open_.shape[0] // f, f, open_.shape[1] // f, f).any(axis=(1, 3))
+    return WalkableGrid(ground.origin, ground.cell * f, np.where(any_open, 0.0, np.nan))
+
+
 def _insertion(dist: np.ndarray, budget: float) -> list[int]:
     """The points (indices into ``dist``, (k, k) walking distances) a loop from point 0 visits, in order: each
     next point in turn where it lengthens the loop least, if the loop then stays within ``budget`` (m)."""
@@ -197,9 +211,7 @@ def _legs(ground: WalkableGrid, stops: np.ndarray, dist: np.ndarray, budget: flo
     is at most ``DETOUR`` × the shortest walk ``dist`` (k, k) or fits in what the shortest walks leave of
     ``budget`` (m); else the shortest walk. A loop of two stops thus goes out by one street and back by
     another."""
-    ny, nx = ground.shape
-    centres = np.asarray(ground.origin) + (np.stack(np.mgrid[0:ny, 0:nx][::-1], axis=-1) + 0.5) * ground.cell
-    used = np.zeros((ny, nx), bool)
+    used = np.zeros(ground.shape, bool)
     route = [stops[:1]]
     k = len(stops)
     shortest = dist[np.arange(k), (np.arange(k) + 1) % k]
@@ -208,24 +220,46 @@ def _legs(ground: WalkableGrid, stops: np.ndarray, dist: np.ndarray, budget: flo
         a, b = stops[i], stops[(i + 1) % k]
         path = None
         if used.any():
-            near = ndimage.distance_transform_edt(~used) * ground.cell <= AVOID
-            ends = np.minimum(np.linalg.norm(centres - a, axis=-1), np.linalg.norm(centres - b, axis=-1))
-            detour = WalkableGrid(ground.origin, ground.cell, np.where(near & (ends > 2 * AVOID), np.nan, ground.ground))
+            allowed = max((DETOUR - 1) * shortest[i], spare)
             try:
-                path = walk_path(detour, a, b)
+                path = _walk(ground, a, b, shortest[i] + allowed + BLOCK, used)
                 extra = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()) - shortest[i]
-                if extra > max((DETOUR - 1) * shortest[i], spare):
+                if extra > allowed:
                     path = None
                 else:
                     spare -= max(extra, 0.0)
             except NoPath:
                 path = None
         if path is None:
-            path = walk_path(ground, a, b)
+            try:
+                path = _walk(ground, a, b, 2 * shortest[i] + BLOCK)
+            except NoPath:
+                path = walk_path(ground, a, b)
         row, col, _ = ground.cells(_along(path, 0.5 * ground.cell))
         used[row, col] = True
         route.append(path[1:])
     return np.vstack(route)
+
+
+def _walk(ground: WalkableGrid, a: np.ndarray, b: np.ndarray, limit: float, used: np.ndarray | None = None
+          ) -> np.ndarray:
+    """``walk_path`` from ``a`` to ``b`` no longer than ``limit`` (m), searched on the part of the grid such a walk
+    can reach (the box round the ellipse with foci a and b); with ``used`` ((ny, nx) bool), keeping ``AVOID``
+    m off those cells except within 2 · ``AVOID`` of either end."""
+    ny, nx = ground.shape
+    reach = max(0.0, (limit - float(np.linalg.norm(b - a))) / 2) + 2 * ground.cell
+    o = np.asarray(ground.origin)
+    c0, r0 = np.maximum(np.floor((np.minimum(a, b) - reach - o) / ground.cell).astype(np.int64), 0)
+    c1, r1 = np.minimum(np.ceil((np.maximum(a, b) + reach - o) / ground.cell).astype(np.int64), [nx, ny])
+    part = ground.ground[r0:r1, c0:c1]
+    origin = o + np.array([c0, r0]) * ground.cell
+    if used is not None:
+        near = ndimage.distance_transform_edt(~used[r0:r1, c0:c1]) * ground.cell <= AVOID
+        ys, xs = np.mgrid[r0:r1, c0:c1]
+        centres = o + (np.stack([xs, ys], axis=-1) + 0.5) * ground.cell
+        ends = np.minimum(np.linalg.norm(centres - a, axis=-1), np.linalg.norm(centres - b, axis=-1))
+        part = np.where(near & (ends > 2 * AVOID), np.nan, part)
+    return walk_path(WalkableGrid((float(origin[0]), float(origin[1])), ground.cell, part), a, b, limit=limit)
 
 
 def _along(points: np.ndarray, step: float) -> np.ndarray:
@@ -254,13 +288,13 @@ def street_loop(grid: WalkableGrid, blocks: np.ndarray, budget: float, min_lengt
             if np.linalg.norm(points[keep] - points[i], axis=1).min() >= 0.5 * BLOCK:
                 keep.append(i)
         points = points[keep]
-        dist = walk_distances(ground, points, limit=budget / 2)
+        dist = walk_distances(_coarse(ground), points, limit=budget / 2)
         order = _insertion(dist, STOPS_SHARE * budget)
         if len(order) < 2:  # no other block within reach of the densest: walk round it
             ext = grid.bounds[1] - grid.bounds[0]
-            ring = _snap(ground, _ring(points[0], max(min(2 * BLOCK, float(ext.min()) / 4), 4 * grid.cell)))
+            ring = _snap(ground, _ring(blocks[0], max(min(2 * BLOCK, float(ext.min()) / 4), 4 * grid.cell)))
             points = np.vstack([points[:1], ring])
-            dist = walk_distances(ground, points, limit=budget / 2)
+            dist = walk_distances(_coarse(ground), points, limit=budget / 2)
             order = _insertion(dist, STOPS_SHARE * budget)
         if len(order) < 2:
             continue

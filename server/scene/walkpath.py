@@ -79,9 +79,10 @@ def walk_distances(grid: WalkableGrid, points, limit: float = np.inf) -> np.ndar
     return out
 
 
-def walk_path(grid: WalkableGrid, start, goal) -> np.ndarray:
+def walk_path(grid: WalkableGrid, start, goal, limit: float = np.inf) -> np.ndarray:
     """The shortest walk from ``start`` to ``goal`` ((2,) x, y) on the grid, as waypoints (k, 2) float64 from
-    start to goal, each straight leg on walkable ground; ``NoPath`` if there is none."""
+    start to goal, each straight leg on walkable ground; ``NoPath`` if there is none (none within ``limit``
+    m: the search stops there)."""
     start, goal = np.asarray(start, np.float64)[:2], np.asarray(goal, np.float64)[:2]
     open_ = np.isfinite(grid.ground)
     (r0, r1), (c0, c1), inside = grid.cells(np.stack([start, goal]))
@@ -89,9 +90,10 @@ def walk_path(grid: WalkableGrid, start, goal) -> np.ndarray:
         raise NoPath(f"no walk from {start.tolist()} to {goal.tolist()}: an end is not on walkable ground")
     ny, nx = grid.shape
     a, b = r0 * nx + c0, r1 * nx + c1
-    _, pred = dijkstra(_graph(open_, grid.cell), directed=False, indices=a, return_predecessors=True)
+    _, pred = dijkstra(_graph(open_, grid.cell), directed=False, indices=a, return_predecessors=True, limit=limit)
     if b != a and pred[b] < 0:
-        raise NoPath(f"no walk from {start.tolist()} to {goal.tolist()}: they lie in different regions")
+        far = "" if np.isinf(limit) else f" within {limit:g} m"
+        raise NoPath(f"no walk from {start.tolist()} to {goal.tolist()}{far}: they lie in different regions")
     chain = [b]
     while chain[-1] != a:
         chain.append(int(pred[chain[-1]]))
