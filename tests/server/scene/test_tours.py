@@ -7,7 +7,6 @@ import sqlite3
 
 import numpy as np
 import pytest
-import trimesh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -15,70 +14,14 @@ from proto.tour import Tour
 from proto.walkable import WalkableGrid
 from server.scene.builder import BuildOptions, build_store
 from server.scene.inspect import format_report, inspect_store
-from server.scene.source import Mesh, SourceObject, SourceScene
 from server.scene.store import SceneStore
 from server.scene.streets import dense_blocks, street_loop
-from server.scene.tour import (EYE_HEIGHT, FLY_HEIGHT, FLY_SPEED, FLY_TURN, MIN_FLY, MIN_WALK, ROOF_CLEARANCE,
+from server.scene.tour import (EYE_HEIGHT, FLY_HEIGHT, FLY_SECONDS, FLY_SPEED, FLY_TURN, MIN_FLY, MIN_WALK, ROOF_CLEARANCE,
                                WALK_SECONDS, WALK_SPEED, WALK_TURN, flyover_tour, named_tours, tour_for, walk_tour)
 from server.scene.writer import SceneWriter
+from tests.city import City, box, city_source
 
-FLY_BUDGET = FLY_SPEED * 150.0
-
-
-class City:
-    """A synthetic city: blocks of box buildings between streets, on ground that slopes a little.
-
-    lo, hi : (n, 3) the buildings' boxes; grid: the walkable grid (a cell a box touches is blocked)
-    """
-
-    def __init__(self, seed: int, cell: float = 0.5) -> None:
-        rng = np.random.default_rng(seed)
-        nbx, nby = (int(v) for v in rng.integers(3, 6, 2))
-        street = float(rng.uniform(8.0, 14.0))
-        widths, depths = rng.uniform(15.0, 35.0, nbx), rng.uniform(15.0, 35.0, nby)
-        x0 = street + np.concatenate([[0.0], np.cumsum(widths + street)[:-1]])
-        y0 = street + np.concatenate([[0.0], np.cumsum(depths + street)[:-1]])
-        bx, by = np.meshgrid(np.arange(nbx), np.arange(nby), indexing="ij")
-        bx, by = bx.reshape(-1), by.reshape(-1)
-        keep = rng.random(bx.size) < 0.85  # some blocks are squares
-        keep[0] = True
-        bx, by = bx[keep], by[keep]
-        self.slope = rng.uniform(-0.04, 0.04, 2)
-        self.base = float(rng.uniform(-5.0, 20.0))
-        lo2 = np.column_stack([x0[bx], y0[by]])
-        hi2 = lo2 + np.column_stack([widths[bx], depths[by]])
-        z0 = self.ground(lo2) - 0.5
-        self.lo = np.column_stack([lo2, z0])
-        self.hi = np.column_stack([hi2, z0 + rng.uniform(6.0, 45.0, len(lo2))])
-        ext = np.array([x0[-1] + widths[-1] + street, y0[-1] + depths[-1] + street])
-        nx, ny = (int(v) for v in np.ceil(ext / cell))
-        ys, xs = np.mgrid[0:ny, 0:nx]
-        centres = (np.stack([xs, ys], axis=-1) + 0.5) * cell
-        ground = self.ground(centres.reshape(-1, 2)).reshape(ny, nx)
-        blocked = np.zeros((ny, nx), bool)
-        for a, b in zip(lo2, hi2):  # every cell the box touches
-            c0, r0 = np.floor(a / cell).astype(int)
-            c1, r1 = np.ceil(b / cell).astype(int)
-            blocked[r0:r1, c0:c1] = True
-        self.grid = WalkableGrid((0.0, 0.0), cell, np.where(blocked, np.nan, ground).astype(np.float32))
-
-    def ground(self, xy: np.ndarray) -> np.ndarray:
-        return self.base + np.asarray(xy, np.float64) @ self.slope
-
-    def inside(self, xy: np.ndarray) -> np.ndarray:
-        """(n,) bool: points inside some building's footprint."""
-        p = np.asarray(xy)[:, None, :2]
-        return ((p > self.lo[None, :, :2]) & (p < self.hi[None, :, :2])).all(axis=2).any(axis=1)
-
-    def roof_under(self, xy: np.ndarray) -> np.ndarray:
-        """(n,) the highest roof whose footprint holds each point (−inf where none does)."""
-        p = np.asarray(xy)[:, None, :2]
-        over = ((p >= self.lo[None, :, :2]) & (p <= self.hi[None, :, :2])).all(axis=2)
-        return np.where(over, self.hi[None, :, 2], -np.inf).max(axis=1)
-
-    def loop(self, budget: float, min_length: float):
-        blocks = dense_blocks(self.grid, self.lo[:, :2], self.hi[:, :2])
-        return street_loop(self.grid, blocks, budget, min_length)
+FLY_BUDGET = FLY_SPEED * FLY_SECONDS
 
 
 def _dense(keys: list[dict], per_key: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -164,37 +107,12 @@ def test_one_house_is_walked_round_and_a_lot_too_small_gets_no_walk():
 # --------------------------------------------------------------------------- stores
 
 
-def _box(lo, hi) -> Mesh:
-    m = trimesh.creation.box(np.subtract(hi, lo))
-    m.apply_translation((np.asarray(lo) + np.asarray(hi)) / 2)
-    return Mesh(np.asarray(m.vertices), np.asarray(m.faces))
-
-
-def _city_source(seed: int = 5) -> tuple[SourceScene, City]:
-    city = City(seed)
-    x1, y1 = city.grid.bounds[1]
-    ground = Mesh(np.array([[0, 0, 0], [x1, 0, 0], [x1, y1, 0], [0, y1, 0]], float), np.array([[0, 1, 2], [0, 2, 3]]))
-    objects = [SourceObject("ground", "ground", [ground])]
-    objects += [SourceObject(f"b{i}", "building", [_box(a, b)]) for i, (a, b) in enumerate(zip(city.lo, city.hi))]
-    return SourceScene(objects=objects), city
-
-
-@pytest.fixture(scope="module")
-def city_store(tmp_path_factory):
-    """A small city built as a user's file is (the walk its default tour)."""
-    source, _ = _city_source()
-    path = tmp_path_factory.mktemp("tours") / "city.db"
-    summary = build_store(path, source, options=BuildOptions(workers=1, shape_guard=False), default_tour="walk")
-    return path, summary
-
-
 def test_a_city_store_keeps_its_walk_flyover_and_orbit_by_name(city_store):
-    path, summary = city_store
-    with SceneStore.open(path) as store:
+    with SceneStore.open(city_store) as store:
         idx = store.index
         grid = store.walkable()
         tours = named_tours(idx)
-        assert set(tours) == {"walk", "flyover", "orbit"} == set(summary["tours"])
+        assert set(tours) == {"walk", "flyover", "orbit"}
         assert {n: t["kind"] for n, t in tours.items()} == {"walk": "walk", "flyover": "flyover", "orbit": "orbit"}
         assert idx.meta["default_tour"] == "walk" and idx.tour == tours["walk"]["keys"]
         assert idx.start == {k: tours["walk"]["keys"][0][k] for k in ("eye", "forward", "up")}
@@ -212,8 +130,7 @@ def test_a_city_store_keeps_its_walk_flyover_and_orbit_by_name(city_store):
 
 
 def test_inspect_lists_the_tours(city_store):
-    path, _ = city_store
-    report = inspect_store(path)
+    report = inspect_store(city_store)
     rows = {t["name"]: t for t in report["tours"]}
     assert set(rows) == {"walk", "flyover", "orbit"}
     assert rows["walk"]["default"] and not rows["orbit"]["default"] and rows["flyover"]["kind"] == "flyover"
@@ -226,12 +143,13 @@ def test_inspect_lists_the_tours(city_store):
 def test_a_named_scene_keeps_its_own_tour_the_default(tmp_path):
     """A scene that comes with a tour (the auditorium's, the demo's) keeps it as the default, named "scene";
     one without keeps the orbit: the street tours come beside them."""
-    source, _ = _city_source(seed=11)
+    source, _ = city_source(seed=11)
     own = [{"t": 0.0, "eye": [1.0, 1.0, 1.7], "forward": [1.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0]},
            {"t": 4.0, "eye": [5.0, 1.0, 1.7], "forward": [1.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0]}]
     opts = BuildOptions(workers=1, shape_guard=False)
     build_store(tmp_path / "own.db", source, tour=own, options=opts, recentre=False)
-    build_store(tmp_path / "orbit.db", source, options=opts)
+    summary = build_store(tmp_path / "orbit.db", source, options=opts)
+    assert set(summary["tours"]) == {"orbit", "walk", "flyover"} and summary["tours"]["orbit"] == 60.0
     with SceneStore.open(tmp_path / "own.db") as a, SceneStore.open(tmp_path / "orbit.db") as b:
         assert a.index.meta["default_tour"] == "scene" and [k["eye"] for k in a.index.tour] == [k["eye"] for k in own]
         assert set(named_tours(a.index)) == {"scene", "walk", "flyover"}
@@ -243,7 +161,7 @@ def test_a_store_of_an_older_build_has_its_one_tour_named_scene(tmp_path):
     keys = [{"t": 0.0, "eye": [0.0, -5.0, 1.0], "forward": [0.0, 1.0, 0.0], "up": [0.0, 0.0, 1.0]},
             {"t": 2.0, "eye": [0.0, -4.0, 1.0], "forward": [0.0, 1.0, 0.0], "up": [0.0, 0.0, 1.0]}]
     with SceneWriter(tmp_path / "old.db", walkable=False) as w:
-        w.add_object("box", "box", [(_box((0, 0, 0), (1, 1, 1)).positions, _box((0, 0, 0), (1, 1, 1)).faces)], [0.0])
+        w.add_object("box", "box", [(box((0, 0, 0), (1, 1, 1)).positions, box((0, 0, 0), (1, 1, 1)).faces)], [0.0])
         w.set_tour(keys)
     with sqlite3.connect(tmp_path / "old.db") as conn:  # as a store built before tours had names
         conn.execute("DELETE FROM meta WHERE key IN ('tours', 'default_tour')")
@@ -257,7 +175,7 @@ def test_a_store_of_an_older_build_has_its_one_tour_named_scene(tmp_path):
 
 def test_the_writer_refuses_a_bad_tour_name_or_kind(tmp_path):
     with SceneWriter(tmp_path / "bad.db") as w:
-        w.add_object("box", "box", [(_box((0, 0, 0), (1, 1, 1)).positions, _box((0, 0, 0), (1, 1, 1)).faces)], [0.0])
+        w.add_object("box", "box", [(box((0, 0, 0), (1, 1, 1)).positions, box((0, 0, 0), (1, 1, 1)).faces)], [0.0])
         key = {"t": 0.0, "eye": [0.0, 0.0, 2.0], "forward": [1.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0]}
         with pytest.raises(ValueError, match="tour name 'a walk'"):
             w.add_tour("a walk", "walk", [key])
