@@ -13,11 +13,13 @@ from hypothesis import strategies as st
 from proto.tour import Tour
 from proto.walkable import WalkableGrid
 from server.scene.builder import BuildOptions, build_store
+from server.scene.index import MESH, TREES
 from server.scene.inspect import format_report, inspect_store
 from server.scene.store import SceneStore
 from server.scene.streets import dense_blocks, street_loop
 from server.scene.tour import (EYE_HEIGHT, FLY_HEIGHT, FLY_SECONDS, FLY_SPEED, FLY_TURN, MIN_FLY, MIN_WALK, ROOF_CLEARANCE,
                                WALK_SECONDS, WALK_SPEED, WALK_TURN, flyover_tour, named_tours, tour_for, walk_tour)
+from server.scene.walkable import GROUND_CLASSES
 from server.scene.writer import SceneWriter
 from tests.city import City, box, city_source
 
@@ -184,3 +186,26 @@ def test_the_writer_refuses_a_bad_tour_name_or_kind(tmp_path):
         with pytest.raises(ValueError, match="set by the writer"):
             w.set_meta(tours={})
         w.abort()
+
+
+def test_den_haag_gets_a_walk_and_a_flyover_beside_its_orbit(denhaag_store):
+    """The real city: a named scene keeps its orbit the default; its walk keeps to the streets at eye height, its
+    flyover clears every building and tree group it passes over."""
+    rows = {t["name"]: t for t in inspect_store(denhaag_store)["tours"]}
+    assert set(rows) == {"orbit", "walk", "flyover"} and rows["orbit"]["default"]
+    with SceneStore.open(denhaag_store) as store:
+        idx = store.index
+        grid = store.walkable()
+        tours = named_tours(idx)
+    assert idx.tour == tours["orbit"]["keys"]
+    _check_loop(tours["walk"]["keys"], WALK_SPEED, WALK_TURN)
+    e, _, _ = _dense(tours["walk"]["keys"])
+    assert grid.walkable(e).all()
+    assert np.abs(e[:, 2] - grid.height(e) - EYE_HEIGHT).max() < 0.35  # a kerb between two keys at most
+    _check_loop(tours["flyover"]["keys"], FLY_SPEED, FLY_TURN)
+    e, _, _ = _dense(tours["flyover"]["keys"])
+    ground = np.isin(np.array(idx.class_names)[idx.object_class], GROUND_CLASSES)
+    solid = np.flatnonzero((idx.object_kind == TREES) | ((idx.object_kind == MESH) & ~ground))
+    lo, hi = idx.object_lo[solid], idx.object_hi[solid]
+    over = ((e[:, None, :2] >= lo[None, :, :2]) & (e[:, None, :2] <= hi[None, :, :2])).all(axis=2)
+    assert (e[:, 2] >= np.where(over, hi[None, :, 2], -np.inf).max(axis=1) + ROOF_CLEARANCE - 1e-3).all()
