@@ -91,7 +91,7 @@ def orbit_tour(lo: np.ndarray, hi: np.ndarray, *, duration: float = 60.0, step: 
     ground = float(lo[2])
     tall = float(max(hi[2] - lo[2], 2.0))
     keys = []
-    n = max(8, int(round(duration / step)))
+    n = max(8, round(duration / step))
     for i in range(n + 1):
         s = i / n
         a = 2 * math.pi * s
@@ -163,7 +163,7 @@ def walk_tour(grid: WalkableGrid, loop: StreetLoop) -> list[dict] | None:
         return None
     n = len(xy)
     dt = length / n / WALK_SPEED
-    yaw = _yaw(xy, int(round(LOOK_AHEAD / (length / n))), math.radians(WALK_TURN) * dt)
+    yaw = _yaw(xy, round(LOOK_AHEAD / (length / n)), math.radians(WALK_TURN) * dt)
     return _keys(xy, ground + EYE_HEIGHT, yaw, math.radians(WALK_PITCH), dt)
 
 
@@ -220,11 +220,11 @@ def flyover_tour(grid: WalkableGrid, loop: StreetLoop, tops_lo: np.ndarray, tops
     row, col, _ = grid.cells(xy)
     ground = grid.ground[ri[row, col], ci[row, col]].astype(np.float64)  # under a roof: the nearest street's
     need = np.maximum(ground + FLY_HEIGHT, _Tops(grid, tops_lo, tops_hi, FLY_REACH)(xy) + ROOF_CLEARANCE)
-    window = min(n, 2 * int(round(FLY_SMOOTH / spacing)) + 1)
+    window = min(n, 2 * round(FLY_SMOOTH / spacing) + 1)
     z = ndimage.uniform_filter1d(ndimage.maximum_filter1d(need, window, mode="wrap"), window, mode="wrap")
     z = np.maximum(z, need)  # the mean's rounding
     dt = spacing / FLY_SPEED
-    yaw = _yaw(xy, int(round(FLY_LOOK_AHEAD / spacing)), math.radians(FLY_TURN) * dt)
+    yaw = _yaw(xy, round(FLY_LOOK_AHEAD / spacing), math.radians(FLY_TURN) * dt)
     return _keys(xy, z, yaw, math.radians(FLY_PITCH), dt)
 
 
