@@ -31,8 +31,10 @@ import os
 import numpy as np
 
 from client.renderer import Renderer
+from client.shading import VERTEX
 from client.splats import SplatLayer
 from proto.camera import NEAR, far_plane, projection_matrix, view_matrix
+from proto.messages import DEFAULT_SUN
 from proto.geometry import decode_geometry
 from proto.morph import decode_morph
 from proto.points import decode_instances, decode_points
@@ -43,7 +45,7 @@ from server.select.morph import rep_parents
 __all__ = ["TREE_SPLATS", "Replayer", "finest_cut", "tree_groups"]
 
 #: GPU bytes per vertex and per triangle in the renderer's arenas (``client.shading.VERTEX``, uint32 indices).
-_VERTEX_BYTES, _TRIANGLE_BYTES = 32, 12
+_VERTEX_BYTES, _TRIANGLE_BYTES = VERTEX.itemsize, 12
 #: Representations fetched from the store per SELECT batch while loading.
 _BATCH = 256
 #: Splats a full-detail frame draws at most by default: a city's tree groups fit whole, a forest's are
@@ -143,10 +145,15 @@ class Replayer:
         self.resident_bytes = 0
         self.splats: SplatLayer | None = None
         self.renderer = Renderer(width, height, fov_y=fov_y, backend=backend)
+        # Lit and painted as the client draws the scene: its sun (``Welcome.sun``) and the sky.
+        sun = np.asarray(ix.meta.get("sun") or DEFAULT_SUN, np.float64)
+        self.renderer.sun = sun / np.linalg.norm(sun)
+        self.renderer.enable_sky()
         if ix.model_points.size:
             try:
                 with self.renderer.ctx:
                     self.splats = SplatLayer(self.renderer.ctx)
+                    self.splats.sun = self.renderer.sun
                     models = self.store.model_geometries(range(int(ix.model_points.size)))
                     for model, blob in enumerate(models):
                         self.splats.add_model(model, decode_points(blob))
@@ -317,7 +324,8 @@ class Replayer:
                 vmap = decode_morph(mblob, n_fine=int(self.index.rep_vertices[rep]))
                 if vmap.size and int(vmap.max()) >= c.vertices:
                     continue  # as the client's cache: a map beyond the coarse level builds no target
-                self.renderer.set_morph_target(rep, np.ascontiguousarray(c.positions[vmap], np.float32))
+                self.renderer.set_morph_target(rep, np.ascontiguousarray(c.positions[vmap], np.float32),
+                                               None if c.colours is None else c.colours[vmap])
             self._target[ids] = True
 
     def _ensure_groups(self, groups: np.ndarray) -> None:

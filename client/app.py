@@ -28,7 +28,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from proto.messages import ALGORITHMS, PROTOCOL_VERSION, Error, Hello, TourKey, TourPlan
+from proto.messages import ALGORITHMS, DEFAULT_SUN, PROTOCOL_VERSION, Error, Hello, TourKey, TourPlan
 from proto.tour import Tour
 
 from .connection import Arrived, Item, Link, Redialled, as_urls, open_patiently, with_client
@@ -37,7 +37,7 @@ from .calibrate import renderer_c_vertex
 from .governor import Governor
 from .navigation import Navigator
 from .records import ClientRun, FrameRecord
-from .renderer import Renderer
+from .renderer import COLOURS, Renderer
 from .splats import SplatLayer
 
 __all__ = ["run_client"]
@@ -86,6 +86,8 @@ def run_client(
     window: bool = False,
     navigate: str = "tour",
     false_colour: bool = False,
+    colours: str = "data",
+    sky: bool = True,
     algorithms: Sequence[str] = ALGORITHMS,
     cache_bytes: int | None = None,
     reconnect_timeout: float = 10.0,
@@ -108,7 +110,9 @@ def run_client(
     ``window`` shows the frames in a window (``client.window``; ends early when
     it is closed) and ``navigate`` ("tour", "fly", "walk") says who moves the
     camera there: the scene's tour, or the user (``client.navigation.Navigator``,
-    whose limits go out in the ``Hello``). ``false_colour`` sets ``Renderer.false_colour``.
+    whose limits go out in the ``Hello``). ``false_colour`` sets ``Renderer.false_colour``, ``colours``
+    ``Renderer.colours`` ("data": the scene's colours, "objects": a tint per object); ``sky`` paints the
+    sky behind the scene (``client.sky``). Every algorithm is lit by the scene's sun (``Welcome.sun``).
     ``algorithms`` are the rendering algorithms offered to the selection (``proto.messages.ALGORITHMS``);
     ``cache_bytes`` is the client cache's budget (payload bytes), kept by both ends.
     A lost connection is redialled for up to ``reconnect_timeout`` s (0: never; ``math.inf``: for ever; the run
@@ -130,6 +134,8 @@ def run_client(
     Raises ``client.connection.ClientError`` if the session cannot be opened, ``client.window.WindowError``
     if the window cannot.
     """
+    if colours not in COLOURS:
+        raise ValueError(f"colours must be one of {', '.join(COLOURS)}, got {colours!r}")
     if navigate not in ("tour", "fly", "walk"):
         raise ValueError(f"navigate must be tour, fly or walk, got {navigate!r}")
     if navigate != "tour" and not window:
@@ -159,6 +165,9 @@ def run_client(
         renderer = Renderer(width, height, fov_y=fov_y, backend=backend)
     if false_colour:
         setattr(renderer, "false_colour", True)
+    renderer.colours = colours
+    if sky:
+        renderer.enable_sky()
     navigator = Navigator(mode=navigate) if navigate != "tour" else None
     limits = {} if navigator is None else {"max_speed": navigator.max_speed, "max_turn": navigator.max_turn}
     if view is not None:
@@ -184,6 +193,8 @@ def run_client(
         opened = open_patiently(urls, hello, timeout, max(0.0, reconnect_timeout))
         link = Link(urls, hello, start, timeout=timeout, patience=reconnect_timeout, silence=silence_timeout)
         run = ClientRun(welcome=opened.welcome, client_id=client_id, attempts=opened.attempts, url=opened.url)
+        sun = np.asarray(opened.welcome.sun if opened.welcome.sun is not None else DEFAULT_SUN, np.float64)
+        renderer.sun = sun / np.linalg.norm(sun)
         inbox: queue.Queue[Item] = queue.Queue()
         link.attach(opened.ws, opened.welcome, opened.nbytes, inbox, url=opened.url)
         welcome = opened.welcome
@@ -192,6 +203,7 @@ def run_client(
             loop.governor = Governor(target_frame_time)
         try:
             loop.splats = SplatLayer(renderer.ctx)
+            loop.splats.sun = renderer.sun
             with quiet_collector():
                 run_frames(loop, welcome, start, duration, 1.0 / max_fps if max_fps else 0.0, on_frame, trace,
                         window=view, navigator=navigator, tour_keys=tour)

@@ -42,6 +42,7 @@ class Resident:
 
     positions : (vertices, 3) float32 — kept on the CPU so a finer level's morph targets can be built
     morph : (vertices,) uint32 map onto the previous level's vertices, or None
+    colours : (vertices, 3) uint8, or None for a colourless payload — the finer level's target colours
     """
 
     object: int
@@ -50,6 +51,7 @@ class Resident:
     vertices: int
     positions: np.ndarray | None = None
     morph: np.ndarray | None = None
+    colours: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -202,7 +204,7 @@ class ResidentCache:
                 groups[rep] = instances
             else:
                 self.resident[rep] = Resident(add.object, add.level, geometry.faces, geometry.vertices,
-                                              geometry.positions, vmap)
+                                              geometry.positions, vmap, geometry.colours)
                 uploads[rep] = geometry
         for rep in delta.drop:
             kind = self._forget(rep, toggled, uploads, groups)
@@ -256,6 +258,14 @@ class ResidentCache:
         if fine.morph.size and int(fine.morph.max()) >= coarse.vertices:
             return None
         return np.ascontiguousarray(coarse.positions[fine.morph], np.float32)
+
+    def morph_target_colours(self, rep: int) -> np.ndarray | None:
+        """(vertices, 3) uint8 — the colour each vertex of ``rep`` blends to at weight 0, where
+        ``morph_targets`` has targets and both levels have colours (else None: each keeps its own)."""
+        fine, coarse = self.resident.get(rep), self.resident.get(rep - 1)
+        if self.morph_targets(rep) is None or fine.colours is None or coarse.colours is None:
+            return None
+        return coarse.colours[fine.morph]
 
     # ------------------------------------------------------------------ internals
 

@@ -225,7 +225,7 @@ class FrameLoop:
                 if rep in self.cache and not self.renderer.has_morph_target(rep):
                     targets = self.cache.morph_targets(rep)
                     if targets is not None:
-                        self.renderer.set_morph_target(rep, targets)
+                        self.renderer.set_morph_target(rep, targets, self.cache.morph_target_colours(rep))
 
     def _ladder(self, delta: Delta) -> None:
         """Give the governor the delta's ladder, over the steps whose both ends the cache holds (a chain stops at
@@ -287,7 +287,7 @@ class FrameLoop:
                 for r in np.unique(rep[morph][~has]).tolist():
                     targets = self.cache.morph_targets(r)
                     if targets is not None:
-                        self.renderer.set_morph_target(r, targets)
+                        self.renderer.set_morph_target(r, targets, self.cache.morph_target_colours(r))
                 has = self.renderer.have_morph_targets(rep[morph])
             ok[np.nonzero(morph)[0][~has]] = False
         ok |= ~changed

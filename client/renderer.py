@@ -6,8 +6,8 @@ splats) and ``ctx.finish()``. Uploads, frees and arena compaction happen
 between frames, outside it.
 
 Layout. Resident geometry lives in two ``Arena`` s: a vertex arena of
-``VERTEX`` records (position, morph target and their smooth normals; 32 bytes,
-``client.shading``) and an index arena of uint32 indices, stored as uploaded
+``VERTEX`` records (position, morph target, their smooth normals and colours;
+40 bytes, ``client.shading``) and an index arena of uint32 indices, stored as uploaded
 (local to their representation; the draw's baseVertex offsets them). A
 representation is a *slot* in numpy tables (``client.slots``: its indirect
 command template, vertex and triangle counts, tint, bounding sphere, whether it
@@ -32,6 +32,17 @@ with its row's weight: 1 for static draws (bit-exact: the target term is 0) and
 for reps without a target, max(w, 0) for the morphing ones. A morph costs the
 finer level's triangles and vertices, and is counted so.
 
+Appearance. Each vertex carries the colour its payload gives (``proto.geometry``)
+and its morph target's, blended with the position; a payload without colours is
+drawn in its object's tint, and ``colours = "objects"`` draws every object in its
+tint (a debugging view). ``sun``, when set, is the world direction every
+algorithm is lit from (the scene's, ``proto.messages.Welcome.sun``); unset, a
+light carried with the camera (``client.shading.key_light``). ``sky``, when set,
+paints a sky gradient (``client.sky``) before the fence instead of clearing to
+``BACKGROUND`` inside it: it is the same full-screen pass every frame whatever
+the selection, so the frame the cost model is fitted to keeps measuring the
+selection's work (the fence then clears depth only).
+
 Matrix convention handed to layers (``draw(layers=...)``): ``view_projection``
 is the (4, 4) float32 row-major matrix M = projection @ view-rotation of
 ``proto.camera`` (the view without its translation), applied as
@@ -43,9 +54,8 @@ receives M.T's bytes (GLSL reads column-major), so a layer uploads
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol, Sequence
+from typing import Sequence
 
 import moderngl
 import numpy as np
@@ -55,14 +65,21 @@ from proto.geometry import Geometry
 from proto.messages import ALGORITHMS
 
 from .arena import Arena, Relocation
+from .frame_stats import FrameStats, FrameTerms, Layer
 from .frame_plan import DRAW, in_frustum, plan_frame
-from .shading import VERTEX, key_light, pack_normals, packed_tint, target_normals, vertex_records
+from .shading import (VERTEX, key_light, morph_targets, pack_colours, pack_normals, packed_tint, target_normals,
+                      vertex_records)
+from .sky import Sky
 from .slots import SlotTable
 
-__all__ = ["FrameStats", "FrameTerms", "Renderer", "RendererError", "BACKGROUND", "Layer", "morph_targets"]
+__all__ = ["FrameStats", "FrameTerms", "Renderer", "RendererError", "BACKGROUND", "COLOURS", "Layer",
+           "morph_targets"]
 
-#: Clear colour (sky), RGB in [0, 1].
+#: Clear colour without a sky (``Renderer.sky``), RGB in [0, 1].
 BACKGROUND = (0.62, 0.74, 0.86)
+#: What a surface is drawn in (``Renderer.colours``): its data's colours (the object's tint where its payload
+#: has none), or every object in its own tint (a debugging view).
+COLOURS = ("data", "objects")
 _FRAGMENT = ("mesh.frag.glsl", "mesh_lit.frag.glsl", "mesh_textured.frag.glsl")
 _SHADERS = Path(__file__).with_name("shaders")
 _EGL_HINT = (
@@ -72,96 +89,13 @@ _EGL_HINT = (
 _NEEDS = ("GL_ARB_multi_draw_indirect", "GL_ARB_base_instance")
 _TEXTURE_PERIOD = 64.0  # metres, mesh_textured.frag.glsl's PERIOD
 
-_VERTEX_FORMAT = ("3f 3f 4f1 4f1", "in_pos", "in_target", "in_normal", "in_target_normal")
+_VERTEX_FORMAT = ("3f 3f 4f1 4f1 4f1 4f1", "in_pos", "in_target", "in_normal", "in_target_normal", "in_colour",
+                  "in_target_colour")
 _DRAW_FORMAT = ("1f 1f 4f1 1u4 /i", "in_weight", "in_level", "in_tint", "in_flags")
 
 
 class RendererError(RuntimeError):
     """The GL context could not be created (or lacks what the renderer needs)."""
-
-
-@dataclass(frozen=True)
-class FrameTerms:
-    """A frame's work per rendering algorithm (index into ``ALGORITHMS``), as ``proto.messages.AlgorithmTerms``.
-
-    Each field is a list of 3 ints; ``pixels`` are samples that passed the depth test.
-    """
-
-    triangles: list[int]
-    vertices: list[int]
-    pixels: list[int]
-    draws: list[int]
-
-
-@dataclass(frozen=True)
-class FrameStats:
-    """One drawn frame: fenced wall time (s) and what was drawn.
-
-    A morphing representation counts its own (the finer level's) triangles and
-    vertices; ``morphs`` is how many of the ``draws`` were morphing (weight < 1).
-    ``pixels``: samples that passed the depth test in the mesh draws (occlusion
-    query; overdraw counts). ``gpu_time``: the timer query's GL_TIME_ELAPSED
-    over the fenced frame (s), or None when not plausible (``Renderer.gpu_time_plausible``).
-    ``cpu_time``: seconds ``draw`` spent on the CPU before the final wait on the
-    GPU (preparation and submission; on llvmpipe submission includes the vertex
-    processing its draw module does in the calling thread). ``prepare_time``:
-    the part of it that is the renderer's own work (looking up the reps,
-    building the multi-draw commands and per-draw rows, uploading them), which
-    is what grows with the number of drawn representations. ``culled``: reps
-    asked for but outside the view frustum, not drawn (nor counted in the
-    other figures: the cost model is fitted to what was drawn). ``splats``: what
-    the layers drew. ``terms``: the same work split by rendering algorithm. ``seen``: which of the reps
-    asked for were drawn.
-    """
-
-    time: float
-    triangles: int
-    vertices: int
-    draws: int
-    morphs: int = 0
-    pixels: int = 0
-    gpu_time: float | None = None
-    cpu_time: float = 0.0
-    splats: int = 0
-    terms: FrameTerms | None = None
-    prepare_time: float = 0.0
-    culled: int = 0
-    seen: np.ndarray | None = None  # (s,) bool over the reps asked for: the ones drawn (resident, in view)
-
-
-class Layer(Protocol):
-    """Something drawn inside the fence after the meshes (the point-splat layer).
-
-    ``render`` gets the row-major camera-relative ``view_projection`` (see the
-    module docstring), the eye (3,) float64, the viewport (width, height) and the
-    vertical fov in degrees; it draws into the bound framebuffer (depth test on)
-    and returns how many splats it drew. It must not begin a GL_TIME_ELAPSED
-    query (the frame's is active).
-    """
-
-    def render(self, view_projection: np.ndarray, eye: np.ndarray, viewport: tuple[int, int],
-               fov_y: float) -> int: ...
-
-
-def morph_targets(fine_positions: np.ndarray, coarse_positions: np.ndarray, vertex_map: np.ndarray) -> np.ndarray:
-    """Where each vertex of a level morphs to: ``coarse_positions[vertex_map]``.
-
-    fine_positions   : (n, 3) float — level k (only its vertex count is used)
-    coarse_positions : (n', 3) float — level k − 1
-    vertex_map       : (n,) int, every entry in 0..n'−1 (``proto.morph.decode_morph``)
-    Returns (n, 3) float32, the argument of ``Renderer.set_morph_target``.
-    Raises ValueError on mismatched shapes or entries out of range.
-    """
-    fine = np.asarray(fine_positions)
-    coarse = np.asarray(coarse_positions, np.float32)
-    m = np.asarray(vertex_map)
-    if fine.ndim != 2 or fine.shape[1] != 3 or coarse.ndim != 2 or coarse.shape[1] != 3:
-        raise ValueError(f"positions must be (n, 3), got {fine.shape} and {coarse.shape}")
-    if m.shape != (fine.shape[0],) or not np.issubdtype(m.dtype, np.integer):
-        raise ValueError(f"the morph map must be ({fine.shape[0]},) integers, got {m.dtype} {m.shape}")
-    if m.size and (int(m.min()) < 0 or int(m.max()) >= coarse.shape[0]):
-        raise ValueError(f"morph map entries must lie in 0..{coarse.shape[0] - 1}")
-    return np.ascontiguousarray(coarse[m.astype(np.intp, copy=False)], np.float32).reshape(-1, 3)
 
 
 def _source(name: str, defines: str, common: str) -> str:
@@ -215,6 +149,12 @@ class Renderer:
         """Leave out reps whose bounding sphere is outside the view frustum (``FrameStats.culled``)."""
         self.false_colour_levels = 5.0
         """The level drawn in the false-colour ramp's finest colour (red); 0 is the coarsest (blue)."""
+        self.colours = "data"
+        """What surfaces are drawn in, one of ``COLOURS`` (``false_colour`` overrides both)."""
+        self.sun: np.ndarray | None = None
+        """(3,) unit world direction towards the sun, or None: a light carried with the camera."""
+        self.sky: Sky | None = None
+        """The sky painted behind the scene (``enable_sky``), or None: cleared to ``BACKGROUND``."""
         common = (_SHADERS / "mesh_common.glsl").read_text()
         self.programs = tuple(
             self.ctx.program(
@@ -224,7 +164,8 @@ class Renderer:
         )
         self._uniforms = [
             {name: prog.get(name, None) for name in ("u_view_projection", "u_eye", "u_up", "u_sun", "u_false_colour",
-                                                     "u_level_scale", "u_eye_wrap")}
+                                                     "u_level_scale", "u_eye_wrap", "u_object_colours",
+                                                     "u_light_mix")}
             for prog in self.programs
         ]
 
@@ -272,9 +213,9 @@ class Renderer:
         """Put one representation on the GPU (replacing any with the same id).
 
         geometry.positions : (nv, 3) float32; geometry.indices : (nf, 3) uint32, every entry < nv.
-        object_id picks the tint, so all levels of one object share a colour. GPU memory:
-        32 bytes per vertex (``VERTEX``) and 12 per triangle, in the arenas.
-        Raises ValueError on an index out of range.
+        geometry.colours : (nv, 3) uint8 or None (then the object's tint). object_id picks the tint, so
+        all levels of one object share a colour. GPU memory: 40 bytes per vertex (``VERTEX``) and 12
+        per triangle, in the arenas. Raises ValueError on an index out of range.
         """
         rep = int(rep)
         positions = np.ascontiguousarray(geometry.positions, np.float32).reshape(-1, 3)
@@ -283,7 +224,7 @@ class Renderer:
         if nf and int(indices.max()) >= nv:
             raise ValueError(f"representation {rep} has indices beyond its {nv} vertices")
         self.free(rep)
-        records = vertex_records(positions, indices)
+        records = vertex_records(positions, indices, getattr(geometry, "colours", None))
         vblock = iblock = -1
         if nv:
             vblock = self.vertex_arena.alloc(nv)
@@ -302,14 +243,15 @@ class Renderer:
         s.bound(slot, lo, hi)
         s.bind(rep, slot)
 
-    def set_morph_target(self, rep: int, targets: np.ndarray) -> None:
+    def set_morph_target(self, rep: int, targets: np.ndarray, colours: np.ndarray | None = None) -> None:
         """Give an uploaded representation its morph target (replacing any it had).
 
         targets : (nv, 3) float — the position each of ``rep``'s nv vertices morphs
             to, on the next coarser level (``morph_targets``). Stored in the vertex
             records with the coarser level's normals (``target_normals``, from the
             rep's own triangles): read back, patched, written — between frames
-            nothing is in flight, so the read does not stall. Dropped with the representation
+            nothing is in flight, so the read does not stall. ``colours``: (nv, 3) uint8, the
+            targets' colours (None: each vertex keeps its own). Dropped with the representation
             (``free``, or ``upload`` over it). Raises KeyError if ``rep`` is not
             uploaded, ValueError on a wrong shape or non-finite targets.
         """
@@ -327,6 +269,7 @@ class Renderer:
             block = int(self._slots.vblock[slot])
             records = np.frombuffer(self.vertex_arena.read(block), VERTEX).copy()
             records["target"] = t
+            records["target_colour"] = records["colour"] if colours is None else pack_colours(colours, nv)
             if self._slots.faces[slot]:
                 indices = np.frombuffer(self.index_arena.read(int(self._slots.iblock[slot])), np.uint32)
                 records["target_normal"] = pack_normals(target_normals(t, indices.reshape(-1, 3)))
@@ -336,6 +279,11 @@ class Renderer:
             lo, hi = np.minimum(c - h, t.min(axis=0)), np.maximum(c + h, t.max(axis=0))
             self._slots.bound(slot, lo, hi)
         self._slots.target[slot] = True
+
+    def enable_sky(self) -> None:
+        """Paint the sky gradient behind the scene from now on (``client.sky``)."""
+        if self.sky is None:
+            self.sky = Sky(self.ctx)
 
     def have_morph_targets(self, reps: np.ndarray) -> np.ndarray:
         """(s,) bool — which of ``reps`` are uploaded with a morph target (vectorised: the per-frame check)."""
@@ -474,8 +422,10 @@ class Renderer:
         values = {
             "u_eye": tuple(eye),
             "u_up": tuple(up / np.linalg.norm(up)),
-            "u_sun": tuple(key_light(forward, up)),
+            "u_sun": tuple(key_light(forward, up) if self.sun is None else self.sun),
             "u_false_colour": bool(self.false_colour),
+            "u_object_colours": self.colours == "objects",
+            "u_light_mix": (0.5, 0.6) if self.sun is None else (0.8, 0.45),
             "u_level_scale": float(self.false_colour_levels),
             "u_eye_wrap": tuple(eye - _TEXTURE_PERIOD * np.floor(eye / _TEXTURE_PERIOD)),
         }
@@ -487,13 +437,22 @@ class Renderer:
                     uniforms[name].value = value
 
         c1 = time.perf_counter()
-        self.ctx.finish()  # uploads still in flight belong to no frame: finish them outside the fence
+        if self.sky is not None:
+            self.fbo.use()
+            self.sky.render(vp64, up, values["u_sun"])
+        self.ctx.finish()  # uploads (and the sky) belong to no frame's selection: finish them outside the fence
         t0 = time.perf_counter()
         splats = 0
         with self._time_query:
             self.fbo.use()
             self.ctx.enable_only(moderngl.DEPTH_TEST)
-            self.fbo.clear(*BACKGROUND, 1.0, depth=1.0)
+            if self.sky is None:
+                self.fbo.clear(*BACKGROUND, 1.0, depth=1.0)
+            else:
+                self.fbo.color_mask = (False, False, False, False)
+                self.fbo.clear(depth=1.0)
+                self.fbo.color_mask = (True, True, True, True)
+                self.fbo.use()  # moderngl applies a framebuffer's colour mask when it is bound
             first = 0
             for k, count in enumerate(per_alg.tolist()):
                 if count:
@@ -576,6 +535,9 @@ class Renderer:
         for prog in self.programs:
             prog.release()
         self.programs = None
+        if self.sky is not None:
+            self.sky.release()
+            self.sky = None
         self.fbo.release()
         self._color.release()
         self._depth.release()

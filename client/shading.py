@@ -2,9 +2,11 @@
 
 A representation's vertices are stored once, at upload, as ``VERTEX`` records:
 its position, its morph target (the position on the next coarser level; the
-position itself until one is set) and the smooth normals at both, so the lit
-algorithm morphs its shading along with the shape. Normals are packed in
-bytes (n·½+½, the shader's normalised ``4f1``). Everything here is numpy over
+position itself until one is set), the smooth normals at both, so the lit
+algorithm morphs its shading along with the shape, and the colours at both
+(the payload's, ``proto.geometry``), so a morph blends colours too. Normals are packed in
+bytes (n·½+½, the shader's normalised ``4f1``); a colour's fourth byte says whether
+the vertex has one (255) or takes its object's tint (0). Everything here is numpy over
 whole meshes, no GL: the renderer writes the results into its arenas.
 """
 
@@ -16,26 +18,67 @@ import numpy as np
 
 from proto.camera import cross3
 
-__all__ = ["VERTEX", "vertex_records", "smooth_normals", "target_normals", "pack_normals", "object_tint",
-           "packed_tint", "key_light"]
+__all__ = ["VERTEX", "vertex_records", "pack_colours", "smooth_normals", "target_normals", "pack_normals",
+           "object_tint", "packed_tint", "key_light", "morph_targets"]
 
 #: Vertex record: world position, morph target (= position until set), smooth normal and the target's normal
-#: (n·½+½ in normalised bytes, 4th byte padding). 32 bytes.
-VERTEX = np.dtype([("position", "<f4", 3), ("target", "<f4", 3), ("normal", "u1", 4), ("target_normal", "u1", 4)])
+#: (n·½+½ in normalised bytes, 4th byte padding), colour and the target's colour (RGB, 4th byte 255 when the
+#: vertex has a colour, 0 when it takes the object's tint). 40 bytes.
+VERTEX = np.dtype([("position", "<f4", 3), ("target", "<f4", 3), ("normal", "u1", 4), ("target_normal", "u1", 4),
+                   ("colour", "u1", 4), ("target_colour", "u1", 4)])
 _AXES = np.arange(3)
 
 
-def vertex_records(positions: np.ndarray, indices: np.ndarray) -> np.ndarray:
+def pack_colours(colours: np.ndarray | None, n: int) -> np.ndarray:
+    """(n, 4) uint8: RGB colours with 255 in the fourth byte, or all zero (the object's tint) for None.
+
+    colours : (n, 3) uint8 or None. Raises ValueError on another shape.
+    """
+    packed = np.zeros((n, 4), np.uint8)
+    if colours is not None:
+        c = np.asarray(colours)
+        if c.shape != (n, 3):
+            raise ValueError(f"colours must be ({n}, 3), got {c.shape}")
+        packed[:, :3] = c
+        packed[:, 3] = 255
+    return packed
+
+
+def vertex_records(positions: np.ndarray, indices: np.ndarray, colours: np.ndarray | None = None) -> np.ndarray:
     """(nv,) ``VERTEX`` records of a mesh without a morph target (the target is the position itself).
 
     positions : (nv, 3) float32; indices : (nf, 3) uint32, every entry < nv
+    colours   : (nv, 3) uint8 per vertex, or None (drawn in the object's tint)
     """
     records = np.empty(positions.shape[0], VERTEX)
     records["position"] = positions
     records["target"] = positions
     records["normal"] = pack_normals(smooth_normals(positions, indices))
     records["target_normal"] = records["normal"]
+    records["colour"] = pack_colours(colours, positions.shape[0])
+    records["target_colour"] = records["colour"]
     return records
+
+
+def morph_targets(fine_positions: np.ndarray, coarse_positions: np.ndarray, vertex_map: np.ndarray) -> np.ndarray:
+    """Where each vertex of a level morphs to: ``coarse_positions[vertex_map]``.
+
+    fine_positions   : (n, 3) float — level k (only its vertex count is used)
+    coarse_positions : (n', 3) float — level k − 1
+    vertex_map       : (n,) int, every entry in 0..n'−1 (``proto.morph.decode_morph``)
+    Returns (n, 3) float32, the argument of ``Renderer.set_morph_target``.
+    Raises ValueError on mismatched shapes or entries out of range.
+    """
+    fine = np.asarray(fine_positions)
+    coarse = np.asarray(coarse_positions, np.float32)
+    m = np.asarray(vertex_map)
+    if fine.ndim != 2 or fine.shape[1] != 3 or coarse.ndim != 2 or coarse.shape[1] != 3:
+        raise ValueError(f"positions must be (n, 3), got {fine.shape} and {coarse.shape}")
+    if m.shape != (fine.shape[0],) or not np.issubdtype(m.dtype, np.integer):
+        raise ValueError(f"the morph map must be ({fine.shape[0]},) integers, got {m.dtype} {m.shape}")
+    if m.size and (int(m.min()) < 0 or int(m.max()) >= coarse.shape[0]):
+        raise ValueError(f"morph map entries must lie in 0..{coarse.shape[0] - 1}")
+    return np.ascontiguousarray(coarse[m.astype(np.intp, copy=False)], np.float32).reshape(-1, 3)
 
 
 def object_tint(object_id: int) -> tuple[float, float, float]:

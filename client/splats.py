@@ -120,6 +120,9 @@ class SplatLayer:
 
     def __init__(self, ctx: moderngl.Context) -> None:
         self.ctx = ctx
+        self.sun: np.ndarray | None = None
+        """(3,) world direction towards the sun (the meshes' ``Renderer.sun``), or None: as
+        ``client.shading.key_light``, carried with the camera."""
         if ctx.version_code < 430 or "GL_ARB_shader_draw_parameters" not in ctx.extensions:
             raise RuntimeError(
                 f"splats need GL ≥ 4.3 with GL_ARB_shader_draw_parameters, got {ctx.version_code}"
@@ -398,7 +401,7 @@ class SplatLayer:
         if np.linalg.norm(forward) < 1e-12:
             forward = -vp[2, :3]
         right, up, forward = (v / max(np.linalg.norm(v), 1e-300) for v in (right, up, forward))
-        sun = -forward + 0.6 * up + 0.35 * right  # as client.shading.key_light
+        sun = -forward + 0.6 * up + 0.35 * right if self.sun is None else np.asarray(self.sun, np.float64)
         prog = self.program
         prog["u_view_projection"].write(vp.T.astype("f4").tobytes())
         prog["u_eye"].value = tuple(eye)

@@ -3,10 +3,16 @@
 A representation is stored exactly as it is sent, so the server streams blobs
 without re-encoding them. Positions are quantized to 16 bits inside the
 object's box (the same box for every level of an object, so that levels line up
-for geomorphing) and both buffers go through meshoptimizer's codecs, which
+for geomorphing) and the buffers go through meshoptimizer's codecs, which
 exploit the vertex-cache order that ``encode_geometry`` establishes first
 (``order_for_gpu``; callers with per-vertex data apply it themselves and pass
 ``reorder=False``).
+
+Colours travel with the geometry: an optional per-vertex RGB8 buffer (``cb``),
+the appearance the source gave (``server.scene.palette``, ``server.scene.colours``).
+A mesh whose faces differ in colour has its vertices split where colours meet, so a
+per-vertex colour is a per-face colour too. Payloads without ``cb`` (colourless
+objects, stores built before colours) decode with ``Geometry.colours`` None.
 
 Payload (a msgpack map)::
 
@@ -17,6 +23,7 @@ Payload (a msgpack map)::
     ext  [x, y, z] float             box extent (> 0 on every axis)
     vb   bytes                       meshopt vertex buffer, nv × 4 uint16 (x, y, z, 0)
     ib   bytes                       meshopt index buffer, 3·nf uint32
+    cb   bytes, optional             meshopt vertex buffer, nv × 4 uint8 (r, g, b, 255)
 """
 
 from __future__ import annotations
@@ -43,10 +50,12 @@ class Geometry:
 
     positions : (nv, 3) float32, world space
     indices   : (nf, 3) uint32, every entry < nv
+    colours   : (nv, 3) uint8 RGB per vertex, or None (the object has no colour of its own)
     """
 
     positions: np.ndarray
     indices: np.ndarray
+    colours: np.ndarray | None = None
 
     @property
     def vertices(self) -> int:
@@ -123,6 +132,7 @@ def encode_geometry(
     box_hi: np.ndarray | None = None,
     *,
     reorder: bool = True,
+    colours: np.ndarray | None = None,
 ) -> bytes:
     """Encode a triangle mesh into a payload.
 
@@ -134,6 +144,7 @@ def encode_geometry(
         vertices are dropped). With ``reorder=False`` the payload holds the vertices
         and faces exactly in the given order (unused vertices included), so stored
         vertex ids are the caller's — pass a mesh already in GPU order.
+    colours   : (nv, 3) uint8 RGB per vertex, or None for a colourless payload
     """
     positions = np.asarray(positions, dtype=np.float64)
     faces = np.asarray(faces)
@@ -148,28 +159,37 @@ def encode_geometry(
         raise ValueError(f"face index {int(faces.min())} is negative")
     if int(faces.max()) >= nv:
         raise ValueError(f"face index {int(faces.max())} out of range for {nv} vertices")
+    if colours is not None:
+        colours = np.asarray(colours)
+        if colours.shape != (nv, 3) or colours.dtype != np.uint8:
+            raise ValueError(f"colours must be ({nv}, 3) uint8, got {colours.dtype} {colours.shape}")
     if box_lo is None or box_hi is None:
         box_lo, box_hi = positions.min(axis=0), positions.max(axis=0)
     lo, ext = safe_box(box_lo, box_hi)
     if reorder:
-        positions, faces, _ = order_for_gpu(positions, faces)
+        positions, faces, new_of_old = order_for_gpu(positions, faces)
+        if colours is not None:
+            kept = new_of_old >= 0
+            reordered = np.empty((positions.shape[0], 3), np.uint8)
+            reordered[new_of_old[kept]] = colours[kept]
+            colours = reordered
     flat = np.ascontiguousarray(faces, dtype=np.uint32).reshape(-1)
     q = quantize(positions, lo, ext)
     nv = q.shape[0]
-    vb = meshoptimizer.encode_vertex_buffer(q, nv, q.itemsize * 4)
-    ib = meshoptimizer.encode_index_buffer(flat, flat.size, nv)
-    return msgpack.packb(
-        {
-            "enc": ENCODING,
-            "nv": int(nv),
-            "nf": int(nf),
-            "lo": [float(x) for x in lo],
-            "ext": [float(x) for x in ext],
-            "vb": vb,
-            "ib": ib,
-        },
-        use_bin_type=True,
-    )
+    payload = {
+        "enc": ENCODING,
+        "nv": int(nv),
+        "nf": int(nf),
+        "lo": [float(x) for x in lo],
+        "ext": [float(x) for x in ext],
+        "vb": meshoptimizer.encode_vertex_buffer(q, nv, q.itemsize * 4),
+        "ib": meshoptimizer.encode_index_buffer(flat, flat.size, nv),
+    }
+    if colours is not None:
+        rgba = np.full((nv, 4), 255, np.uint8)
+        rgba[:, :3] = colours
+        payload["cb"] = meshoptimizer.encode_vertex_buffer(rgba, nv, 4)
+    return msgpack.packb(payload, use_bin_type=True)
 
 
 def _field(payload: dict, name: str, kind: type | tuple[type, ...]) -> object:
@@ -221,4 +241,19 @@ def decode_geometry(blob: bytes) -> Geometry:
     idx = np.frombuffer(np.ascontiguousarray(idx).tobytes(), dtype=np.uint32).reshape(nf, 3)
     if int(idx.max()) >= nv:
         raise ProtocolError("bad_geometry", f"index {int(idx.max())} out of range for {nv} vertices")
-    return Geometry(positions=dequantize(q, lo, ext), indices=idx)
+    return Geometry(positions=dequantize(q, lo, ext), indices=idx, colours=_colours(payload, nv))
+
+
+def _colours(payload: dict, nv: int) -> np.ndarray | None:
+    """The optional per-vertex colours: (nv, 3) uint8, or None when the payload has none."""
+    if "cb" not in payload:
+        return None
+    cb = _field(payload, "cb", bytes)
+    try:
+        rgba = meshoptimizer.decode_vertex_buffer(nv, 4, cb)
+    except Exception as exc:
+        raise ProtocolError("bad_geometry", f"geometry colour buffer does not decode: {exc}") from None
+    raw = np.ascontiguousarray(rgba).tobytes()
+    if len(raw) != 4 * nv:
+        raise ProtocolError("bad_geometry", f"geometry colour buffer holds {len(raw)} bytes, expected {4 * nv}")
+    return np.frombuffer(raw, np.uint8).reshape(nv, 4)[:, :3].copy()

@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 __all__ = [
     "PROTOCOL_VERSION",
+    "DEFAULT_SUN",
     "LADDER_DEPTH",
     "Hello",
     "Welcome",
@@ -62,6 +63,10 @@ MAX_LIST = 1 << 20
 LADDER_DEPTH = 4
 #: Vertices a ladder counts at most (a selection, or a frame the governor draws).
 MAX_LADDER_VERTICES = 1.0e12
+
+#: Where the sun is when a scene does not say (``Welcome.sun``): the unit direction towards it, world space
+#: (+z up; x east and y north in geographic scenes) — from the south-south-west (azimuth 200°), 45° high.
+DEFAULT_SUN = (-0.241845, -0.664463, 0.707107)
 
 Coord = Annotated[float, Field(ge=-MAX_COORD, le=MAX_COORD)]
 Vec3 = Annotated[list[Coord], Field(min_length=3, max_length=3)]
@@ -353,6 +358,15 @@ class Welcome(_Message):
     held: Annotated[int, Field(ge=0, le=MAX_LIST)] = 0
     #: The scene's walkable grid (``proto.walkable.encode``), when the hello asked and the scene has one.
     walkable: Annotated[bytes, Field(max_length=1 << 24)] | None = None
+    #: The direction towards the scene's sun (world space, need not be unit), which lights every rendering
+    #: algorithm; None: the scene names none (``DEFAULT_SUN``).
+    sun: Vec3 | None = None
+
+    @model_validator(mode="after")
+    def _sun(self) -> "Welcome":
+        if self.sun is not None and _norm(self.sun) < 1e-9:
+            raise ValueError("sun must be a non-zero vector")
+        return self
 
 
 class Ping(_Message):

@@ -52,7 +52,10 @@ def client(
     tour: Optional[str] = typer.Option(None, "--tour", help="follow the scene's tour of this name (walk, flyover, "
                                        "orbit, ...: `walkstream inspect` lists them; default: the scene's default "
                                        "tour)"),
-    false_colour: bool = typer.Option(False, "--false-colour", help="draw each object in a false colour"),
+    colour: Literal["data", "objects", "levels"] = typer.Option(
+        "data", help="what surfaces are drawn in: the scene's colours (semantic surfaces, materials), a tint "
+                     "per object, or a colour per drawn level with morphs striped"),
+    false_colour: bool = typer.Option(False, "--false-colour", help="the same as --colour levels"),
     governor: bool = typer.Option(True, "--governor/--no-governor",
                                   help="correct the server's selection every frame along each delta's ladder "
                                        "(the frame governor; --no-governor draws the server's plan as it is)"),
@@ -94,8 +97,8 @@ def client(
         run = run_client(
             url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3,
             screenshot=screenshot, solver=solver, predict=predict, morph=morph, window=window, navigate=navigate,
-            false_colour=false_colour, reconnect_timeout=reconnect_timeout, governor=governor, record_tour=record_tour,
-            tour_name=tour,
+            false_colour=false_colour or colour == "levels", colours="objects" if colour == "objects" else "data",
+            reconnect_timeout=reconnect_timeout, governor=governor, record_tour=record_tour, tour_name=tour,
         )
     except (WindowError, ClientError) as exc:
         typer.echo(f"error: {exc}", err=True)

@@ -25,7 +25,7 @@ import numpy as np
 
 from proto.codec import encode
 from proto.errors import ProtocolError
-from proto.messages import MAX_PLAN_KEYS, Error, TourPlan, Welcome
+from proto.messages import DEFAULT_SUN, MAX_PLAN_KEYS, Error, TourPlan, Welcome
 from proto.walkable import WalkableGrid, decode as decode_walkable
 
 from .attract import ATTRACT, COUNTDOWN, AttractMachine, reported_state
@@ -102,6 +102,8 @@ class Director:
         session of the same run carries on from where the camera is)."""
         self.loop = loop
         self.attach(loop.renderer)
+        sun = np.asarray(welcome.sun if welcome.sun is not None else DEFAULT_SUN, np.float64)
+        loop.renderer.sun = sun / np.linalg.norm(sun)  # the scene's sun, as the walkstream client lights it
         self._reconnects = 0
         nav = self.config.navigation
         if welcome.walkable:

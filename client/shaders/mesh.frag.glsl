@@ -4,7 +4,7 @@
 // so the winding of simplified meshes does not matter.
 
 in vec3 v_rel;
-flat in vec3 v_colour;
+in vec3 v_colour;
 flat in uint v_flags;
 out vec4 f_color;
 

@@ -9,7 +9,8 @@
 // Geomorph (Zach 2002, 3.4): every vertex carries its morph target, the vertex
 // of the next coarser level it morphs to (the position itself until the renderer
 // is given one), with that vertex's normal (lit morphs its shading too), and
-// every draw a weight. The blend is written w·pos + (1 − w)·target
+// every draw a weight; its colour blends toward the target's colour the same way.
+// The blend is written w·pos + (1 − w)·target
 // rather than with mix(), whose rounding GLSL leaves to the implementation, so
 // that w = 1 is the level itself and w = 0 the coarser level, bit for bit (also
 // under fused multiply-add: the other product is then exactly 0).
@@ -24,13 +25,15 @@ in vec3 in_pos;                  // world-space position (this level)
 in vec3 in_target;               // world-space position it morphs to
 in vec4 in_normal;               // smooth normal, n · ½ + ½ in normalised bytes (lit only)
 in vec4 in_target_normal;        // the morph target's normal, the same way (lit only)
+in vec4 in_colour;               // the vertex's colour; a = 1 when it has one, 0: the object's tint
+in vec4 in_target_colour;        // the morph target's colour, the same way
 in float in_weight;              // per draw: morph weight in [0, 1] (1: static)
 in float in_level;               // per draw: continuous level, for the false colours
 in vec4 in_tint;                 // per draw: the object's colour
 in uint in_flags;                // per draw: FLAG_MORPH
 
 out vec3 v_rel;                  // position relative to the eye
-flat out vec3 v_colour;          // the surface colour (tint, or the level's false colour)
+out vec3 v_colour;               // the surface colour (the data's, the tint, or the level's false colour)
 flat out uint v_flags;
 #if ALGORITHM == 1
 out vec3 v_light;                // Gouraud: the lighting, per vertex
@@ -41,7 +44,9 @@ void main() {
     float w = in_weight;
     vec3 pos = in_pos * w + in_target * (1.0 - w);
     v_rel = pos - u_eye;
-    v_colour = u_false_colour ? level_colour(in_level) : in_tint.rgb;
+    vec4 own = in_colour * w + in_target_colour * (1.0 - w);
+    vec3 data = mix(in_tint.rgb, own.rgb, own.a);
+    v_colour = u_false_colour ? level_colour(in_level) : (u_object_colours ? in_tint.rgb : data);
     v_flags = in_flags;
 #if ALGORITHM == 1
     vec3 n = (in_normal.xyz * w + in_target_normal.xyz * (1.0 - w)) * 2.0 - 1.0;

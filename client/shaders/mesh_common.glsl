@@ -4,20 +4,23 @@
 // algorithms differ only in where the normal comes from and what the surface is.
 
 uniform vec3 u_up;             // world up (the camera's up vector)
-uniform vec3 u_sun;            // unit direction towards the key light, world space
+uniform vec3 u_sun;            // unit direction towards the sun (or the camera's key light), world space
+uniform vec2 u_light_mix;      // weights of the hemisphere and of the sun
 uniform bool u_false_colour;   // colour by drawn level, stripe the morphing draws
+uniform bool u_object_colours; // every object in its tint, whatever colours its payload has
 uniform float u_level_scale;   // level drawn in the ramp's finest colour
 
 const vec3 SKY = vec3(0.80, 0.88, 1.00);
 const vec3 GROUND = vec3(0.42, 0.38, 0.33);
 const uint FLAG_MORPH = 1u;
 
-// Hemisphere (sky above, ground below, along the camera's up) plus a camera-borne
-// key light: every visible face is lit, and the angle still separates faces.
+// Hemisphere (sky above, ground below, along the camera's up) plus the sun, or a
+// camera-borne key light: every visible face is lit, and the angle still separates faces.
+// A fixed sun leaves the faces turned from it to the hemisphere, which then weighs more.
 vec3 light(vec3 n) {
     float h = dot(n, u_up) * 0.5 + 0.5;
-    vec3 ambient = mix(GROUND, SKY, h) * 0.5;
-    float sun = max(dot(n, u_sun), 0.0) * 0.6;
+    vec3 ambient = mix(GROUND, SKY, h) * u_light_mix.x;
+    float sun = max(dot(n, u_sun), 0.0) * u_light_mix.y;
     return ambient + vec3(sun);
 }
 

@@ -3,7 +3,7 @@
 // the fragment only modulates the interpolated light.
 
 in vec3 v_rel;
-flat in vec3 v_colour;
+in vec3 v_colour;
 flat in uint v_flags;
 in vec3 v_light;
 in float v_specular;

@@ -1,6 +1,6 @@
 #version 330 core
 // Textured (algorithm 2): a procedural world-space stone-and-brick texture,
-// projected triplanar and lit like flat. Deliberately heavier per pixel (three
+// projected triplanar over the surface's colour and lit like flat. Deliberately heavier per pixel (three
 // brick lookups and four octaves of value noise per projection) so that its
 // fill cost is measurably higher than the other algorithms'.
 //
@@ -11,7 +11,7 @@
 uniform vec3 u_eye_wrap;
 
 in vec3 v_rel;
-flat in vec3 v_colour;
+in vec3 v_colour;
 flat in uint v_flags;
 out vec4 f_color;
 

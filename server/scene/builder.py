@@ -7,7 +7,8 @@ The stages, each with its own progress count:
    morphs), its errors and its payloads, in worker processes;
 2. **hlod** — when the scene has many buildings, an HLOD tree over them whose
    inner nodes carry merged, simplified proxies (one root covers the city);
-3. **terrain** — each height grid becomes a quadtree of patches with skirts;
+3. **terrain** — each height grid becomes a quadtree of patches with skirts; a scene
+   without terrain first gets a ground under its objects (``server.scene.ground``);
 4. **trees** — tree models become prefix-ordered point sets, instances are
    grouped ≤ 64 per quadtree leaf;
 5. **write** — everything goes into one ``SceneWriter`` transaction, parents
@@ -26,16 +27,20 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from proto.geometry import encode_geometry
+from proto.messages import DEFAULT_SUN
 
 from .blocks import oriented_box
+from .colours import Appearance, coloured_levels, coloured_mesh, constant
+from .palette import class_colour
 from .fidelity import Bounds, Fidelity
+from .ground import GROUND_NAME, ground_grid, needs_ground
 from .index import HLOD, MESH, TERRAIN, TREES
 from .ladder import shaped_chain, shaped_source_chain
 from .scans import model_source
@@ -72,6 +77,7 @@ class BuildOptions:
                       (``server.scene.ladder``); False: plain quadric chains, unmeasured
     bounds          : silhouette IoU / area ratio / FLIP a kept level or proxy must reach
     max_proxy_faces : most faces of an HLOD proxy
+    ground          : lay a ground under a scene that has no terrain (``server.scene.ground``)
     street_tours    : make the ``walk`` and ``flyover`` tours where the scene's streets allow them
                       (``server.scene.tour.scene_tours``)
     """
@@ -88,6 +94,7 @@ class BuildOptions:
     shape_guard: bool = True
     bounds: Bounds = Bounds()
     max_proxy_faces: int = 4096
+    ground: bool = True
     street_tours: bool = True
 
 
@@ -107,6 +114,8 @@ class ChainRows:
     sample  : (≤ HLOD_POINTS, 3) full-detail vertices, for its HLOD ancestors' errors
     box     : its LoD1 box (``blocks.oriented_box`` of the finest level), when measured
     full_closed : whether the finest level is closed (the area bound applies to its levels)
+    appearance : its coarsest level's colours, from which its HLOD ancestors' proxies take theirs
+                 (None: a colourless object)
     """
 
     lo: np.ndarray
@@ -121,11 +130,12 @@ class ChainRows:
     sample: np.ndarray
     box: tuple[np.ndarray, np.ndarray] | None = None
     full_closed: bool = False
+    appearance: Appearance | None = None
 
 
 def _chain_job(args: tuple) -> ChainRows:
-    """One object's rows (``ChainRows``)."""
-    levels, morph, min_saving, building, guard, bounds = args
+    """One object's rows (``ChainRows``); every level takes its colours from ``ref`` (``server.scene.colours``)."""
+    levels, morph, min_saving, building, guard, bounds, ref = args
     fidelity = None
     box = None
     regenerated = dropped = 0
@@ -149,12 +159,18 @@ def _chain_job(args: tuple) -> ChainRows:
                 kept.append((p, f))
         chain = chain_from_levels(kept[::-1], morph="nearest")
     # morph[k] maps level k's vertices onto level k-1's; the coarsest level (and morph="none") has none.
-    lo, hi, blobs, morphs = encode_levels(chain.levels, chain.morph, reorder=False)
+    appearance = None
+    if ref is None:
+        lo, hi, blobs, morphs = encode_levels(chain.levels, chain.morph, reorder=False)
+    else:
+        stored, maps, colours = coloured_levels(ref, chain.levels, chain.morph)
+        lo, hi, blobs, morphs = encode_levels(stored, maps, reorder=False, colours=colours)
+        appearance = Appearance.of_level(*stored[0], colours[0], ref.by_face)
     coarsest = chain.levels[0]
     full, full_faces = chain.levels[-1]
     sample = full[np.linspace(0, full.shape[0] - 1, min(full.shape[0], HLOD_POINTS)).astype(np.int64)]
     rows = ChainRows(lo, hi, [float(e) for e in chain.errors], blobs, morphs, coarsest, fidelity, regenerated,
-                     dropped, sample)
+                     dropped, sample, appearance=appearance)
     if guard:
         rows.box = box if box is not None else oriented_box(full, full_faces)
         rows.full_closed = is_closed(full_faces)
@@ -239,6 +255,9 @@ def build_store(
     started = time.perf_counter()
     tick = progress or (lambda stage, done, total: None)
     source.check()
+    bare = needs_ground(source)
+    if options.ground and bare:
+        source = replace(source, grids=[*source.grids, ground_grid(source)])
     origin = scene_origin(source) if recentre else np.zeros(3)
     workers = options.workers or default_workers()
     timings: dict[str, float] = {}
@@ -247,7 +266,8 @@ def build_store(
     t0 = time.perf_counter()
     objects = [o for o in source.objects if o.levels and all(m.n_faces for m in o.levels)]
     jobs = [([(m.positions - origin, m.faces) for m in o.levels], options.morph, options.min_saving,
-             _is_building(o.cls), options.shape_guard and not _is_ground(o.cls), options.bounds)
+             _is_building(o.cls), options.shape_guard and not _is_ground(o.cls), options.bounds,
+             Appearance.of(o.levels[-1], origin))
             for o in objects]
     chains: list[tuple] = []
     tick("chains", 0, len(jobs))
@@ -293,7 +313,8 @@ def build_store(
         for g in source.grids:
             shifted = HeightGrid(g.name, g.heights - origin[2], (g.origin[0] - origin[0], g.origin[1] - origin[1]),
                                  g.spacing, g.attributes)
-            terrains.append((g.name, build_quadtree(shifted, patch=options.patch)))
+            terrains.append((g.name, build_quadtree(shifted, patch=options.patch),
+                             class_colour(str(g.attributes.get("class", "terrain")))))
             tick("terrain", len(terrains), len(source.grids))
     timings["terrain"] = time.perf_counter() - t0
 
@@ -326,7 +347,7 @@ def build_store(
     counts = {k: 0 for k in ("mesh", "hlod", "terrain", "trees")}
     with SceneWriter(path, name=name or Path(path).stem, generator=generator, seed=seed) as writer:
         total = len(objects) + (int(tree.kept.sum()) if tree is not None else 0) + sum(
-            len(t.parent) for _, t in terrains) + (len(groups.group_first) if groups is not None else 0)
+            len(t.parent) for _, t, _ in terrains) + (len(groups.group_first) if groups is not None else 0)
         written = 0
 
         def wrote() -> None:
@@ -342,7 +363,11 @@ def build_store(
             up = tree.kept_parent()
             for j in np.flatnonzero(tree.kept):  # ascending ids: parents first
                 p, f = tree.proxies[j].positions, tree.proxies[j].faces
-                blob = encode_geometry(p, f, p.min(axis=0), p.max(axis=0))
+                ref = Appearance.merge([rows[i].appearance for i in tree.leaves_under(int(j))])
+                colours = None
+                if ref is not None:
+                    p, f, colours = coloured_mesh(ref, p, f)
+                blob = encode_geometry(p, f, p.min(axis=0), p.max(axis=0), colours=colours)
                 q = tree.fidelity[j] if tree.fidelity else None
                 node_id[j] = writer.add_encoded(
                     f"hlod_{j}", "hlod", np.minimum(tree.lo[j], p.min(axis=0)), np.maximum(tree.hi[j], p.max(axis=0)),
@@ -357,7 +382,10 @@ def build_store(
                                parent=int(parent_of[i]), morphs=rows.morphs, fidelity=rows.fidelity)
             counts["mesh"] += 1
             wrote()
-        for tname, t in terrains:
+        tour_box = None  # the generated ground's padding is no part of what a tour looks at
+        for tname, t, colour in terrains:
+            if tname == GROUND_NAME and tour_box is None:
+                tour_box = writer.bounds
             ids: list[int] = []
             patches = [t.mesh(j) for j in range(len(t.parent))]
             box_lo, box_hi = _subtree_boxes(t.parent, [p.min(axis=0) for p, _ in patches],
@@ -365,7 +393,8 @@ def build_store(
             for j, (p, f) in enumerate(patches):
                 parent = -1 if t.parent[j] < 0 else ids[t.parent[j]]
                 # the geometry is quantized in its own box; the object's box bounds its whole subtree
-                blob = encode_geometry(p, f, p.min(axis=0), p.max(axis=0))
+                blob = encode_geometry(p, f, p.min(axis=0), p.max(axis=0),
+                                       colours=constant(p.shape[0], colour))
                 ids.append(writer.add_encoded(f"{tname}/patch_{j}", "terrain", box_lo[j], box_hi[j],
                                               [float(t.error[j])], [blob], kind=TERRAIN, parent=parent))
                 counts["terrain"] += 1
@@ -382,14 +411,18 @@ def build_store(
                                    counts=[(int(groups.points[g]), 0)])
                 counts["trees"] += 1
                 wrote()
+        if tour_box is not None and groups is not None and len(groups.group_first):
+            tour_box = (np.minimum(tour_box[0], groups.lo.min(axis=0)), np.maximum(tour_box[1], groups.hi.max(axis=0)))
         if tour is None:
-            writer.set_tour(orbit_tour(*writer.bounds), name="orbit", kind="orbit")
+            writer.set_tour(orbit_tour(*(tour_box if tour_box is not None else writer.bounds)), name="orbit",
+                            kind="orbit")
         else:
             writer.set_tour([{**k, "eye": (np.asarray(k["eye"], np.float64) - origin).tolist()} for k in tour])
         if options.street_tours:
             writer.make_tours(_street_tours, prefer=(default_tour,) if default_tour else ())
         writer.set_meta(shape_guard={"levels": levels, **({"proxies": proxies} if proxies else {})},
-                        origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {},
+                        origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {}, sun=list(DEFAULT_SUN),
+                        ground="generated" if tour_box is not None else ("none" if bare else "terrain"),
                         sources=list(source.sources), kinds=counts,
                         tree_instances=len(source.trees) if source.trees is not None else 0,
                         tree_models=[{"name": pm.name, "source": model_source(tm), "points": len(pm)}

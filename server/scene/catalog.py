@@ -158,7 +158,8 @@ def _sthelens(seed: int, size: int | None, progress: Progress, grid: int | None 
 
 
 SCENES: dict[str, Recipe] = {
-    "auditorium": Recipe(_auditorium, BuildOptions(hlod=False), "Funkhouser & Séquin's auditorium, ≥400 chairs"),
+    "auditorium": Recipe(_auditorium, BuildOptions(hlod=False, ground=False),
+                         "Funkhouser & Séquin's auditorium, ≥400 chairs"),
     "denhaag": Recipe(_denhaag, BuildOptions(), "Den Haag buildings + TIN terrain + generated trees"),
     "sthelens": Recipe(_sthelens, BuildOptions(), "St. Helens DEM quadtree + ≥100k splat trees"),
     "megacity": Recipe(_megacity, BuildOptions(), "≥40k generated buildings, ≥20M triangles"),

@@ -24,14 +24,33 @@ class SourceError(ValueError):
 
 @dataclass
 class Mesh:
-    """A triangle mesh: positions (n, 3) float64, faces (m, 3) int64 with every entry < n."""
+    """A triangle mesh: positions (n, 3) float64, faces (m, 3) int64 with every entry < n.
+
+    Its appearance, when the source gives one (``server.scene.palette`` says from what):
+    face_colours   : (m, 3) uint8 RGB per face — semantic surfaces, materials; or None
+    vertex_colours : (n, 3) uint8 RGB per vertex — colours that vary across a surface; or None
+    A mesh has at most one of the two; the builder carries either through its levels
+    (``server.scene.colours``).
+    """
 
     positions: np.ndarray
     faces: np.ndarray
+    face_colours: np.ndarray | None = None
+    vertex_colours: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = np.asarray(self.positions, np.float64).reshape(-1, 3)
         self.faces = np.asarray(self.faces, np.int64).reshape(-1, 3)
+        if self.face_colours is not None and self.vertex_colours is not None:
+            raise ValueError("a mesh has face colours or vertex colours, not both")
+        if self.face_colours is not None:
+            self.face_colours = _rgb8(self.face_colours, self.faces.shape[0], "face_colours")
+        if self.vertex_colours is not None:
+            self.vertex_colours = _rgb8(self.vertex_colours, self.positions.shape[0], "vertex_colours")
+
+    @property
+    def coloured(self) -> bool:
+        return self.face_colours is not None or self.vertex_colours is not None
 
     @property
     def n_faces(self) -> int:
@@ -40,6 +59,13 @@ class Mesh:
     @property
     def n_vertices(self) -> int:
         return int(self.positions.shape[0])
+
+
+def _rgb8(colours, n: int, name: str) -> np.ndarray:
+    c = np.asarray(colours)
+    if c.shape != (n, 3) or c.dtype != np.uint8:
+        raise ValueError(f"{name} must be ({n}, 3) uint8, got {c.dtype} {c.shape}")
+    return c
 
 
 @dataclass

@@ -283,7 +283,8 @@ def _load_index(path: Path, conn: sqlite3.Connection) -> SceneIndex:
         raise StoreError(f"{path}: corrupt: meta table unreadable: {exc}") from None
     version = meta.get("schema_version")
     if version != SCHEMA_VERSION:
-        raise StoreError(f"{path}: schema version {version!r}, this program reads version {SCHEMA_VERSION}")
+        raise StoreError(f"{path}: schema version {version!r}, this program reads version {SCHEMA_VERSION}; "
+                         "rebuild it with `walkstream build`")
     for table in TABLES:
         if table not in tables:
             raise StoreError(f"{path}: corrupt: missing table '{table}'")

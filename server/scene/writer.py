@@ -381,7 +381,8 @@ def object_box(levels: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndar
 
 
 def encode_levels(levels: Sequence[tuple[np.ndarray, np.ndarray]],
-                  morphs: Sequence[np.ndarray | None] | None = None, *, reorder: bool = True
+                  morphs: Sequence[np.ndarray | None] | None = None, *, reorder: bool = True,
+                  colours: Sequence[np.ndarray] | None = None,
                   ) -> tuple[np.ndarray, np.ndarray, list[bytes], list[bytes | None] | None]:
     """An object's levels as store payloads: (lo (3,), hi (3,) float64, geometry blobs, morph blobs).
 
@@ -391,9 +392,13 @@ def encode_levels(levels: Sequence[tuple[np.ndarray, np.ndarray]],
              ``proto.morph``); None gives None for the morph blobs
     reorder: put each level in GPU order while encoding; morph maps index stored vertices, so
              levels that carry them must already be in that order (``reorder=False``)
+    colours: per level, (n_k, 3) uint8 per vertex (``server.scene.colours``), or None: colourless
     """
     lo, hi = object_box(levels)
-    blobs = [encode_geometry(p, f, lo, hi, reorder=reorder) for p, f in levels]
+    if colours is not None and len(colours) != len(levels):
+        raise ValueError(f"{len(levels)} levels but {len(colours)} colour arrays")
+    blobs = [encode_geometry(p, f, lo, hi, reorder=reorder, colours=None if colours is None else colours[k])
+             for k, (p, f) in enumerate(levels)]
     encoded = None
     if morphs is not None:
         encoded = [None if m is None else encode_morph(m, levels[k - 1][0].shape[0])

@@ -296,6 +296,7 @@ class Session:
                 resumed=resumed,
                 held=self.mirror.held[0],
                 walkable=store.walkable_encoded() if hello.walkable else None,
+                sun=index.meta.get("sun"),
             ),
             self._ping(now),
         ]

@@ -149,3 +149,19 @@ def test_geometry_payload_defects_are_refused():
         assert info.value.code == "bad_geometry" and needle in info.value.message
     with pytest.raises(ProtocolError):
         decode_geometry(b"\x93")
+
+
+def test_welcome_sun_is_optional_and_never_a_zero_vector():
+    from pydantic import ValidationError
+
+    from proto.messages import DEFAULT_SUN
+
+    base = dict(session="abc", protocol=1, scene="demo", bounds=[[0, 0, 0], [1, 1, 1]], start=Pose(**POSE),
+                tau=0.5, solver="greedy")
+    assert Welcome(**base).sun is None
+    assert Welcome(**base, sun=list(DEFAULT_SUN)).sun == list(DEFAULT_SUN)
+    assert abs(sum(x * x for x in DEFAULT_SUN) - 1.0) < 1e-5
+    with pytest.raises(ValidationError, match="sun"):
+        Welcome(**base, sun=[0.0, 0.0, 0.0])
+    with pytest.raises(ValidationError):
+        Welcome(**base, sun=[1.0, float("nan"), 0.0])

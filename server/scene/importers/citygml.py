@@ -18,7 +18,11 @@ draw it with instead (``TreeInstances.model_file``; ``server.scene.scans``).
 becomes a ``SourceObject`` ("building" / "buildingpart"); a part records its
 building's id. Polygons are read once, where they are defined (solids that
 ``xlink`` them again are not followed), and ``ClosureSurface`` s are left
-out: they are virtual faces closing a volume, not something one sees.
+out: they are virtual faces closing a volume, not something one sees. Each
+polygon takes the colour of the semantic surface it bounds (``RoofSurface``,
+``WallSurface``, ``GroundSurface``, ``Window``, ``Door``…, ``server.scene.palette``),
+its object's class colour where it bounds none. CityGML appearances
+(``app:``) are not read.
 
 The file is read with ``iterparse`` and each top-level city object is
 cleared when done, so memory stays at one object. Elements are matched by
@@ -37,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from server.scene.palette import class_colour, surface_colour
 from server.scene.scans import TREE_MODEL_ATTRIBUTE
 from server.scene.source import Mesh, SourceError, SourceObject, SourceScene, TreeInstances, TreeModel
 
@@ -89,41 +94,56 @@ def _triangulator():
         return None
 
 
-def _fan(polys: list[list[np.ndarray]]) -> np.ndarray:
-    """Fan triangles over each exterior ring (holes dropped), indices into the concatenated rings."""
-    faces, n = [], 0
-    for rings in polys:
+def _fan(polys: list[list[np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Fan triangles over each exterior ring (holes dropped), indices into the concatenated rings,
+    and the polygon of each triangle."""
+    faces, owner, n = [], [], 0
+    for i, rings in enumerate(polys):
         k = len(rings[0])
         faces.append(np.column_stack([np.full(k - 2, n), np.arange(n + 1, n + k - 1), np.arange(n + 2, n + k)]))
+        owner.append(np.full(k - 2, i))
         n += sum(len(r) for r in rings)
-    return np.concatenate(faces).astype(np.int64)
+    return np.concatenate(faces).astype(np.int64), np.concatenate(owner).astype(np.int64)
 
 
-def _mesh(polys: list[list[np.ndarray]], tri) -> Mesh:
-    """One mesh from polygons (each a list of rings); exactly equal vertices are welded."""
+def _mesh(polys: list[list[np.ndarray]], tri, colours: list | None = None, cls: str = "") -> Mesh:
+    """One mesh from polygons (each a list of rings); exactly equal vertices are welded.
+
+    colours : per polygon, its RGB8 or None (then ``cls``'s colour); None: a mesh without colours
+    """
     if not polys:
         return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
     pts = np.concatenate([r for rings in polys for r in rings])
     if tri is not None:
+        from server.scene.importers.polygons import flatten_polygons, triangulate_rings
+
         index, n = [], 0
         for rings in polys:
             index.append([list(range(n + sum(len(q) for q in rings[:k]), n + sum(len(q) for q in rings[:k + 1])))
                           for k in range(len(rings))])
             n += sum(len(r) for r in rings)
-        faces = np.asarray(tri(pts, index), np.int64).reshape(-1, 3)
+        faces, owner = triangulate_rings(pts, flatten_polygons(index))
+        faces = np.asarray(faces, np.int64).reshape(-1, 3)
     else:
-        faces = _fan(polys)
+        faces, owner = _fan(polys)
     pos, inv = np.unique(pts, axis=0, return_inverse=True)
     f = inv.reshape(-1)[faces]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
-    return Mesh(pos, f)
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    if colours is None:
+        return Mesh(pos, f[keep])
+    fallback = class_colour(cls)
+    poly_colour = np.array([fallback if c is None else c for c in colours], np.uint8).reshape(-1, 3)
+    return Mesh(pos, f[keep], face_colours=poly_colour[owner[keep]])
 
 
-def _polygons(elem: ET.Element, path, owner: str, stop=()) -> list[list[np.ndarray]]:
-    """Every gml:Polygon below ``elem`` as rings, not descending into ``stop`` elements or ClosureSurfaces."""
+def _polygons(elem: ET.Element, path, owner: str, stop=(), colours: list | None = None) -> list[list[np.ndarray]]:
+    """Every gml:Polygon below ``elem`` as rings, not descending into ``stop`` elements or ClosureSurfaces.
+
+    colours : when given, receives each polygon's semantic surface colour (None where it bounds none)
+    """
     out = []
 
-    def walk(e):
+    def walk(e, colour):
         for c in e:
             name = _local(c.tag)
             if name in stop or name == "ClosureSurface":
@@ -134,10 +154,12 @@ def _polygons(elem: ET.Element, path, owner: str, stop=()) -> list[list[np.ndarr
                          for r in b if _local(r.tag) == "LinearRing"]
                 if rings:
                     out.append(rings)
+                    if colours is not None:
+                        colours.append(colour)
             else:
-                walk(c)
+                walk(c, surface_colour(name) or colour)
 
-    walk(elem)
+    walk(elem, None)
     return out
 
 
@@ -187,15 +209,17 @@ def load_citygml(path) -> SourceScene:
                 e.clear()
             elif name == "Building":
                 bid = e.get(_GML_ID) or f"building{len(objects) + 1}"
-                own = _polygons(e, path, f"building {bid}", stop=("BuildingPart",))
+                colours: list = []
+                own = _polygons(e, path, f"building {bid}", stop=("BuildingPart",), colours=colours)
                 if own:
-                    objects.append(SourceObject(bid, "building", [_mesh(own, tri)], {"id": bid}))
+                    objects.append(SourceObject(bid, "building", [_mesh(own, tri, colours, "building")], {"id": bid}))
                 for part in e.iter():
                     if _local(part.tag) == "BuildingPart":
                         pid = part.get(_GML_ID) or f"{bid}-part{len(objects) + 1}"
-                        polys = _polygons(part, path, f"building part {pid}")
+                        colours = []
+                        polys = _polygons(part, path, f"building part {pid}", colours=colours)
                         if polys:
-                            objects.append(SourceObject(pid, "buildingpart", [_mesh(polys, tri)],
+                            objects.append(SourceObject(pid, "buildingpart", [_mesh(polys, tri, colours, "building")],
                                                         {"id": pid, "building": bid}))
                 e.clear()
             elif name == "cityObjectMember":

@@ -1,7 +1,9 @@
 """CityJSON 1.0 / 1.1 / 2.0 → SourceScene: one SourceObject per CityObject with surface geometry.
 
 An object's geometries at different LoDs become its levels, coarsest → finest, which
-is the LOD chain the builder keeps. All polygons of the file are triangulated in one
+is the LOD chain the builder keeps. Every surface gets a colour (``Mesh.face_colours``):
+its material's ``diffuseColor`` (the first theme), else its semantic type's, else its
+object's IFC or class colour (``server.scene.palette``). All polygons of the file are triangulated in one
 vectorised pass (polygons.py); each level then gets a compact vertex array of its own.
 The whole file is validated before anything is returned, so a malformed file never
 yields a partial scene.
@@ -16,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..palette import class_colour, ifc_colour, rgb8, surface_colour
 from ..source import Mesh, SourceError, SourceObject, SourceScene
 from .polygons import Rings, flatten_polygons, triangulate_rings
 
@@ -37,7 +40,7 @@ def load_cityjson(path: str | Path) -> SourceScene:
     city_objects = doc.get("CityObjects")
     if not isinstance(city_objects, dict):
         raise SourceError(f"{path}: 'CityObjects' is missing or not an object")
-    walk = _Walk(path, vertices, doc.get("geometry-templates"))
+    walk = _Walk(path, vertices, doc.get("geometry-templates"), _materials(path, doc))
     for oid, obj in city_objects.items():
         walk.add_object(str(oid), obj)
     objects = walk.build()
@@ -136,6 +139,31 @@ def _reference_system(doc: dict) -> str | None:
     return ref
 
 
+def _materials(path: Path, doc: dict) -> list:
+    """Per material of the file's appearance, its ``diffuseColor`` as RGB8 (None where it has none)."""
+    appearance = doc.get("appearance")
+    materials = appearance.get("materials") if isinstance(appearance, dict) else None
+    if not isinstance(materials, list):
+        return []
+    out = []
+    for i, m in enumerate(materials):
+        colour = m.get("diffuseColor") if isinstance(m, dict) else None
+        try:
+            out.append(None if colour is None else rgb8(colour))
+        except (ValueError, TypeError):
+            raise SourceError(f"{path}: appearance.materials[{i}].diffuseColor = {colour!r} "
+                              "is not three numbers") from None
+    return out
+
+
+def _flat_values(values, depth: int) -> list:
+    """A semantics or material ``values`` array flattened to one entry per polygon (None where absent)."""
+    level = values if isinstance(values, list) else []
+    for _ in range(depth - 1):
+        level = [x for sub in level if isinstance(sub, list) for x in sub]
+    return level
+
+
 def _lod_key(lod) -> tuple:
     """Numeric sort of LoD values ("1.2" < "1.3" < "2.2"; 2 == "2.0"); unparseable ones last."""
     try:
@@ -147,8 +175,11 @@ def _lod_key(lod) -> tuple:
 class _Walk:
     """Collects every surface of every object, then triangulates them all at once."""
 
-    def __init__(self, path: Path, vertices: np.ndarray, templates) -> None:
+    def __init__(self, path: Path, vertices: np.ndarray, templates, materials: list | None = None) -> None:
         self.path = path
+        self.materials = materials or []
+        self.poly_colour: list = []  # RGB8 of each polygon in ``polygons``
+        self.instance_colour: list = []  # RGB8 of each instance's polygons
         self.vertices = vertices
         self.extra: list[np.ndarray] = []  # placed template vertices, appended after ``vertices``
         self.n_total = vertices.shape[0]
@@ -172,6 +203,9 @@ class _Walk:
         info = {"id": oid, "type": kind, "cls": "terrain" if kind == "TINRelief" else kind.lstrip("+").lower(),
                 "parent": parents[0] if isinstance(parents, list) and parents else None,
                 "attributes": obj.get("attributes"), "notes": []}
+        ifc = (info["attributes"] or {}).get("info") if isinstance(info["attributes"], dict) else None
+        ifc = ifc if isinstance(ifc, dict) else {}
+        info["colour"] = ifc_colour(ifc.get("type"), ifc.get("PredefinedType")) or class_colour(info["cls"])
         number = len(self.objects)
         self.objects.append(info)
         for g, geom in enumerate(geometries):
@@ -191,14 +225,37 @@ class _Walk:
         if gtype not in _DEPTH:
             raise SourceError(f"{self.path}: {where} has unknown type {gtype!r} "
                               f"(known: {', '.join([*_DEPTH, *sorted(_NO_SURFACES), 'GeometryInstance'])})")
-        polys = self._surfaces(geom.get("boundaries"), _DEPTH[gtype], where)
+        polys, kept = self._surfaces(geom.get("boundaries"), _DEPTH[gtype], where, keep=True)
         slot = self._slot(number, geom.get("lod"))
+        colours = self._colours(geom, _DEPTH[gtype], len(kept), info["colour"])
+        self.poly_colour.extend(colours[i] for i in kept)
         self.polygons.extend(polys)
         self.poly_slot.extend([slot] * len(polys))
         self.geoms.append((oid, g, len(polys)))
 
-    def _surfaces(self, boundaries, depth: int, where: str) -> list:
-        """The polygons (lists of rings) under ``depth`` list levels of boundaries."""
+    def _colours(self, geom: dict, depth: int, n: int, fallback: tuple) -> list:
+        """Each of the geometry's n polygons' colour: material, else semantic surface, else ``fallback``."""
+        out = [fallback] * n
+        semantics = geom.get("semantics")
+        if isinstance(semantics, dict) and isinstance(semantics.get("surfaces"), list):
+            kinds = [surface_colour(s.get("type")) if isinstance(s, dict) else None for s in semantics["surfaces"]]
+            for i, v in enumerate(_flat_values(semantics.get("values"), depth)[:n]):
+                if isinstance(v, int) and 0 <= v < len(kinds) and kinds[v] is not None:
+                    out[i] = kinds[v]
+        themes = geom.get("material")
+        if isinstance(themes, dict) and themes and self.materials:
+            theme = next(iter(themes.values()))
+            if isinstance(theme, dict):
+                values = ([theme["value"]] * n if "value" in theme
+                          else _flat_values(theme.get("values"), depth)[:n])
+                for i, v in enumerate(values):
+                    if isinstance(v, int) and 0 <= v < len(self.materials) and self.materials[v] is not None:
+                        out[i] = self.materials[v]
+        return out
+
+    def _surfaces(self, boundaries, depth: int, where: str, keep: bool = False):
+        """The polygons (lists of rings) under ``depth`` list levels of boundaries (with ``keep``: and the
+        positions of those polygons among all, empty ones included, as ``values`` arrays count them)."""
         level = boundaries
         try:
             if not isinstance(level, list):
@@ -210,7 +267,9 @@ class _Walk:
         except TypeError:
             raise SourceError(f"{self.path}: {where}: 'boundaries' are not nested {depth + 2} levels deep "
                               f"as its type requires") from None
-        return [p for p in level if p]  # a polygon without rings has nothing to draw
+        kept = [i for i, p in enumerate(level) if p]  # a polygon without rings has nothing to draw
+        polys = [level[i] for i in kept]
+        return (polys, kept) if keep else polys
 
     def _slot(self, number: int, lod) -> int:
         key = (number, _lod_key(lod))
@@ -262,6 +321,7 @@ class _Walk:
         self.extra.append(placed)
         self.n_total += placed.shape[0]
         self.instance_rings.append((rings, self._slot(number, template.get("lod"))))
+        self.instance_colour.extend([info["colour"]] * rings.n_polygons)
         info["notes"].append(f"geometry #{g} is an instance of template {k}")
 
     def build(self) -> list[SourceObject]:
@@ -269,10 +329,11 @@ class _Walk:
         vertices = np.concatenate([self.vertices, *self.extra]) if self.extra else self.vertices
         poly_slot = np.asarray(self.poly_slot + [s for r, s in self.instance_rings for _ in range(r.n_polygons)],
                                np.int64)
+        poly_colour = np.asarray(self.poly_colour + self.instance_colour, np.uint8).reshape(-1, 3)
         faces, owner = triangulate_rings(vertices, rings)
         face_slot = poly_slot[owner]
         order = np.argsort(face_slot, kind="stable")
-        faces, face_slot = faces[order], face_slot[order]
+        faces, face_slot, face_colour = faces[order], face_slot[order], poly_colour[owner][order]
         bounds = np.searchsorted(face_slot, np.arange(len(self.slots) + 1))
         levels: dict[int, list[tuple[str, Mesh]]] = {}
         for s, (number, lod) in enumerate(self.slots):
@@ -280,7 +341,8 @@ class _Walk:
             if f.shape[0] == 0:
                 continue
             used, inverse = np.unique(f, return_inverse=True)
-            levels.setdefault(number, []).append((lod, Mesh(vertices[used], inverse.reshape(-1, 3))))
+            levels.setdefault(number, []).append(
+                (lod, Mesh(vertices[used], inverse.reshape(-1, 3), face_colours=face_colour[bounds[s]:bounds[s + 1]])))
         out = []
         for number, info in enumerate(self.objects):
             if number not in levels:

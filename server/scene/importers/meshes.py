@@ -3,6 +3,11 @@
 Each node's world transform is baked into its positions (an instanced mesh becomes
 several objects, which is what LOD selection wants: each copy is culled on its own).
 glTF is +y up, walkstream +z up, so glTF positions are rotated x→x, y→z, z→−y.
+
+Appearance (``server.scene.palette``): a PLY's or OBJ's vertex or face colours as they
+are; a material's base colour factor (glTF) or diffuse colour (OBJ), times its
+base-colour texture's mean colour when it has one; a mesh with none of these is
+drawn in its class colour.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..palette import class_colour
 from ..source import Mesh, SourceError, SourceObject, SourceScene
 
 __all__ = ["MESH_SUFFIXES", "Y_UP_TO_Z_UP", "load_mesh_file"]
@@ -51,6 +57,7 @@ def load_mesh_file(path: str | Path) -> SourceScene:
             continue
         name = path.stem if node == path.name else str(node)
         mesh = _node_mesh(path, node, geom, up @ np.asarray(transform, np.float64))
+        _colour(mesh, geom, _cls(name))
         objects.append(SourceObject(name, _cls(name), [mesh],
                                     {"node": str(node), "geometry": str(geom_name), "format": kind[1:]}))
     if not objects:
@@ -79,6 +86,42 @@ def _node_mesh(path: Path, node: str, geom, matrix: np.ndarray) -> Mesh:
     if np.linalg.det(matrix[:3, :3]) < 0:
         faces = faces[:, ::-1]  # a mirroring transform would turn the mesh inside out
     return Mesh(world, faces)
+
+
+def _colour(mesh: Mesh, geom, cls: str) -> None:
+    """Give ``mesh`` the appearance trimesh read for its geometry (see the module docstring)."""
+    visual = getattr(geom, "visual", None)
+    kind = getattr(visual, "kind", None)
+    if kind == "vertex" and len(visual.vertex_colors) == mesh.n_vertices:
+        mesh.vertex_colours = np.ascontiguousarray(np.asarray(visual.vertex_colors)[:, :3], np.uint8)
+        return
+    if kind == "face" and len(visual.face_colors) == mesh.n_faces:
+        mesh.face_colours = np.ascontiguousarray(np.asarray(visual.face_colors)[:, :3], np.uint8)
+        return
+    colour = _material_colour(getattr(visual, "material", None))
+    mesh.face_colours = np.tile(np.asarray(colour if colour is not None else class_colour(cls), np.uint8),
+                                (mesh.n_faces, 1))
+
+
+def _material_colour(material) -> tuple[int, int, int] | None:
+    """A material's colour: base colour factor (PBR) or diffuse (simple), times its texture's mean; None
+    for a material that sets neither."""
+    if material is None:
+        return None
+    if hasattr(material, "baseColorFactor"):  # trimesh's PBR material (glTF): RGBA uint8
+        factor, texture = material.baseColorFactor, getattr(material, "baseColorTexture", None)
+    else:  # trimesh's simple material (OBJ's MTL)
+        factor, texture = getattr(material, "diffuse", None), getattr(material, "image", None)
+    if factor is None and texture is None:
+        return None
+    rgb = np.ones(3) if factor is None else np.asarray(factor, np.float64).reshape(-1)[:3] / 255.0
+    if texture is not None:
+        try:
+            rgb = rgb * np.asarray(texture.convert("RGB"), np.float64).reshape(-1, 3).mean(axis=0) / 255.0
+        except (AttributeError, OSError, ValueError):
+            pass  # an unreadable texture leaves the factor
+    r, g, b = (int(v) for v in np.rint(np.clip(rgb, 0.0, 1.0) * 255.0))
+    return (r, g, b)
 
 
 def _cls(name: str) -> str:

@@ -332,7 +332,7 @@ class _Socket:
 
 def test_the_loop_feeds_renderer_and_splats_and_acks_what_it_holds(denhaag):
     """``FrameLoop.handle``: meshes to the renderer, groups and models to the splat layer, the cache's state acked."""
-    budget = 400_000  # half the store: the mirror evicts, and tree groups still fit
+    budget = int(denhaag["denhaag"].index.rep_bytes.sum()) // 2  # half the store: the mirror evicts, groups fit
     pair = Pair(denhaag, solver="mixed", hello_bytes=budget)
     welcome = Welcome(session="x", protocol=PROTOCOL_VERSION, scene="denhaag", bounds=pair.index.bounds.tolist(),
                       start=Pose(**pair.index.start), tau=0.5, solver="mixed")

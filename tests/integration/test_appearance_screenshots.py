@@ -1,0 +1,174 @@
+"""Screenshots that prove the appearance: the real server (uvicorn) streams user files built by
+``walkstream build``'s path, the real client (EGL) draws them and writes its last frame as a PNG.
+
+- a semantic CityJSON building (the FZK-Haus, converted from IFC): its roof's pixels are red,
+  its walls' pixels light and neutral;
+- a city with the ground the builder lays under it (the Berlin LoD2 blocks, which bring no
+  terrain): at street level, looking slightly down, no pixel below the horizon shows the sky;
+- a glTF box with a base colour factor: drawn in that colour.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+from trimesh.visual.material import PBRMaterial
+
+from bench.demo import ServerProcess
+from client.app import run_client
+from client.renderer import BACKGROUND
+from proto.camera import projection_matrix, view_matrix
+from server.scene.catalog import build_path
+from server.scene.data import data_file
+from server.scene.ground import ground_grid
+from server.scene.importers import load_source
+from server.scene.store import SceneStore
+
+W, H, FOV = 320, 240, 60.0
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory) -> dict[str, Path]:
+    folder = tmp_path_factory.mktemp("appearance")
+    box = trimesh.creation.box((4.0, 4.0, 4.0))
+    box.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(baseColorFactor=[40, 90, 220, 255]))
+    trimesh.Scene(box).export(folder / "bluebox.glb")
+    out = {}
+    for key, source in (("fzk", data_file("interior/AC20-FZK-Haus.city.json")),
+                        ("berlin", data_file("trees/berlin_buildings_lod2.gml")),
+                        ("box", folder / "bluebox.glb")):
+        out[key] = folder / f"{key}.db"
+        build_path(source, out[key], workers=1)
+    return out
+
+
+@pytest.fixture(scope="module")
+def server(stores):
+    with ServerProcess(list(stores.values())) as srv:
+        yield srv
+
+
+def _origin(store: Path) -> tuple[str, np.ndarray]:
+    with SceneStore.open(store) as s:
+        return s.index.name, np.asarray(s.index.meta["origin"], np.float64)
+
+
+def _shoot(server, store: Path, eye, target, path: Path, seconds: float = 5.0, sky: bool = True) -> np.ndarray:
+    """The client's last frame from a fixed pose (store coordinates) after ``seconds`` of streaming
+    (``sky=False``: cleared to the plain ``BACKGROUND`` instead of the sky)."""
+    name, _ = _origin(store)
+    forward = (np.asarray(target, float) - np.asarray(eye, float)).tolist()
+    key = {"eye": list(map(float, eye)), "forward": forward, "up": [0.0, 0.0, 1.0]}
+    run = run_client(server.url, name, duration=seconds, viewport=(W, H), fov_y=FOV, target_frame_time=0.25,
+                     screenshot=path, tour=[{"t": 0.0, **key}, {"t": 1000.0, **key}], sky=sky)
+    assert not run.errors and len(run.frames) > 3
+    return np.asarray(Image.open(path).convert("RGB")).astype(np.int64)
+
+
+def _project(points: np.ndarray, eye, target) -> np.ndarray:
+    """Pixel (column, row) of world points for the camera of ``_shoot``; rows top-down."""
+    forward = np.asarray(target, float) - np.asarray(eye, float)
+    vp = projection_matrix(FOV, W / H, 0.1, 1000.0) @ view_matrix(np.zeros(3), forward, np.array([0.0, 0.0, 1.0]))
+    clip = np.column_stack([points - np.asarray(eye, float), np.ones(len(points))]) @ vp.T
+    ndc = clip[:, :2] / clip[:, 3:4]
+    return np.column_stack([(ndc[:, 0] + 1) / 2 * W, (1 - ndc[:, 1]) / 2 * H]).astype(int)
+
+
+def test_a_semantic_building_has_red_roof_pixels_and_light_wall_pixels(server, stores, tmp_path) -> None:
+    _, origin = _origin(stores["fzk"])
+    eye, target = np.array([-22.0, -28.0, 10.0]), np.array([0.0, 0.0, 2.0])
+    image = _shoot(server, stores["fzk"], eye, target, tmp_path / "fzk.png")
+    source = load_source(data_file("interior/AC20-FZK-Haus.city.json"))
+
+    def pixels(kind: str, name: str | None = None, up: float = -1.0, outer: bool = False) -> np.ndarray:
+        """Image pixels at the centroids of the objects' triangles that face the camera, whose normal's z
+        is at least ``up`` and, if ``outer``, that lie on the house's outer walls (its plan box)."""
+        out = []
+        for o in source.objects:
+            info = o.attributes.get("attributes", {}).get("info", {})
+            if info.get("type") != kind or (name is not None and not str(info.get("Name", "")).startswith(name)):
+                continue
+            m = o.levels[-1]
+            tri = m.positions[m.faces] - origin
+            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            c = tri.mean(axis=1)
+            length = np.linalg.norm(n, axis=1)
+            facing = (n * (eye - c)).sum(axis=1) > 0.3 * length * np.linalg.norm(eye - c, axis=1)
+            facing &= n[:, 2] >= up * length
+            if outer:
+                on_box = (np.abs(c[:, :2] - box_lo).min(axis=1) < 0.02) | (np.abs(c[:, :2] - box_hi).min(axis=1) < 0.02)
+                facing &= on_box & (np.abs(n[:, 2]) < 0.05 * length)
+            xy = _project(c[facing], eye, target)
+            inside = (xy[:, 0] >= 0) & (xy[:, 0] < W) & (xy[:, 1] >= 0) & (xy[:, 1] < H)
+            out.append(image[xy[inside, 1], xy[inside, 0]])
+        return np.concatenate(out)
+
+    walls = np.concatenate([o.levels[-1].positions for o in source.objects
+                            if o.attributes.get("attributes", {}).get("info", {}).get("type") == "IfcWallStandardCase"])
+    box_lo, box_hi = walls.min(axis=0)[:2] - origin[:2], walls.max(axis=0)[:2] - origin[:2]
+    roof, wall = pixels("IfcSlab", "Dach", up=0.3), pixels("IfcWallStandardCase", outer=True)
+    assert len(roof) >= 2 and len(wall) >= 10
+    red = (roof[:, 0] > 1.6 * roof[:, 1]) & (roof[:, 0] > 1.6 * roof[:, 2])
+    assert red.mean() > 0.9, roof
+    neutral = (np.ptp(wall, axis=1) < 40) & (wall.min(axis=1) > 110)
+    assert neutral.mean() > 0.6, wall  # windows and doors set in the walls take some of their centroids
+
+
+def test_a_city_stands_on_its_generated_ground_below_the_horizon(server, stores, tmp_path) -> None:
+    _, origin = _origin(stores["berlin"])
+    source = load_source(data_file("trees/berlin_buildings_lod2.gml"))
+    grid = ground_grid(source)
+    lo = np.min([o.levels[-1].positions.min(axis=0) for o in source.objects], axis=0)
+    # At street level a little west of the blocks, looking east and 8° down.
+    at = np.array([lo[0] - 25.0, (lo[1] + np.max([o.levels[-1].positions[:, 1].max() for o in source.objects])) / 2])
+    col = int(round((at[0] - grid.origin[0]) / grid.spacing[0]))
+    row = int(round((at[1] - grid.origin[1]) / grid.spacing[1]))
+    eye = np.r_[at, grid.heights[row, col] + 1.7] - origin
+    pitch = math.radians(8.0)
+    target = eye + np.array([math.cos(pitch), 0.0, -math.sin(pitch)])
+    # Cleared to the plain background instead of the sky, so an uncovered pixel is that colour exactly.
+    image = _shoot(server, stores["berlin"], eye, target, tmp_path / "street.png", sky=False)
+    background = np.round(np.asarray(BACKGROUND) * 255)
+    horizon = H / 2 - math.tan(pitch) / math.tan(math.radians(FOV / 2)) * H / 2  # the row of the horizon
+    below = int(math.ceil(H / 2 - math.tan(pitch - math.radians(1.0)) / math.tan(math.radians(FOV / 2)) * H / 2))
+    assert 10 < horizon < below < H
+    bare = np.abs(image - background).max(axis=2) <= 2
+    assert not bare[below:].any(), f"background below the horizon in rows {np.unique(np.nonzero(bare[below:])[0] + below)}"
+    assert bare[: int(horizon) - 2].mean() > 0.2  # and still above it, between and over the blocks
+    ground = image[below:].reshape(-1, 3)
+    assert np.median(ground[:, 1]) > np.median(ground[:, 2])  # greenish grey (the ground), not the sky's blue
+
+
+def test_a_gltf_base_colour_factor_is_drawn(server, stores, tmp_path) -> None:
+    _, origin = _origin(stores["box"])
+    image = _shoot(server, stores["box"], np.array([7.0, -9.0, 6.0]) - origin, -origin, tmp_path / "box.png", 3.0)
+    centre = image[H // 2 - 5 : H // 2 + 5, W // 2 - 5 : W // 2 + 5].reshape(-1, 3)
+    # (40, 90, 220) lit: blue dominates in every pixel, in the factor's proportions.
+    assert (centre[:, 2] > 1.8 * centre[:, 0]).all() and (centre[:, 2] > 1.3 * centre[:, 1]).all()
+
+
+def test_the_client_command_draws_data_colours_or_object_tints(server, stores, tmp_path) -> None:
+    """``walkstream client --colour objects`` is the debugging view of tints; the default draws the data."""
+    import subprocess
+    import sys
+
+    name, _ = _origin(stores["fzk"])
+    red = {}
+    for colour in ("data", "objects"):
+        png = tmp_path / f"{colour}.png"
+        done = subprocess.run([sys.executable, "-m", "walkstream", "client", server.url, "--scene", name,
+                               "--duration", "4", "--width", str(W), "--height", str(H), "--target-ms", "250",
+                               "--colour", colour, "--screenshot", str(png)], capture_output=True, text=True,
+                              timeout=120)
+        assert done.returncode == 0, done.stderr
+        image = np.asarray(Image.open(png).convert("RGB")).astype(np.int64)
+        red[colour] = ((image[..., 0] > 1.6 * image[..., 1]) & (image[..., 0] > 1.6 * image[..., 2])).mean()
+    assert red["data"] > 0.05 and red["objects"] < 0.01  # the roof's red; tints are pastel
+    done = subprocess.run([sys.executable, "-m", "walkstream", "client", server.url, "--colour", "plaid"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "plaid" in done.stderr
