@@ -47,7 +47,6 @@ from .scans import model_source
 from .lod import build_chain, chain_from_levels
 from .source import Mesh, SourceScene
 from .store import SceneStore
-from .streets import BUILDING_CLASSES
 from .surface import is_closed
 from .tour import named_tours, orbit_tour, scene_tours
 from .workers import POOL_MIN_JOBS, default_workers, pool_map
@@ -101,7 +100,7 @@ class BuildOptions:
 #: Full-detail vertices per object from which HLOD proxies' errors are measured.
 HLOD_POINTS = 48
 
-_BUILDING_CLASSES = BUILDING_CLASSES
+_BUILDING_CLASSES = ("building", "buildingpart", "building_part", "house")
 
 
 @dataclass

@@ -33,15 +33,14 @@ from scipy import ndimage
 
 from proto.walkable import WalkableGrid
 
+from .ground import BUILDING_CLASSES
 from .index import MESH
 from .walkable import GROUND_CLASSES
 from .walkpath import NoPath, largest_region, walk_distances, walk_path
 
-__all__ = ["BUILDING_CLASSES", "BLOCK", "CLEARANCES", "MAX_BLOCKS", "footprints", "dense_blocks", "open_ground",
+__all__ = ["BLOCK", "CLEARANCES", "MAX_BLOCKS", "footprints", "dense_blocks", "open_ground",
            "StreetLoop", "street_loop", "resample_loop", "smooth_within"]
 
-#: Object classes that are buildings (CityJSON's and CityGML's, lower case).
-BUILDING_CLASSES = ("building", "buildingpart", "building_part", "house")
 #: A city block (m): the density's blur, and the least distance between two blocks a loop visits.
 BLOCK = 10.0
 #: Clearances (m) from anything that blocks, widest first: a loop keeps the widest that lets it through.
