@@ -32,7 +32,7 @@ from .walkable import GROUND_CLASSES
 
 __all__ = ["orbit_tour", "walk_tour", "flyover_tour", "scene_tours", "named_tours", "default_tour_name", "tour_for",
            "TOUR_KINDS", "EYE_HEIGHT", "WALK_SPEED", "WALK_TURN", "FLY_SPEED", "FLY_HEIGHT", "ROOF_CLEARANCE",
-           "FLY_REACH", "KEY_STEP"]
+           "FLY_REACH", "KEY_STEP", "MIN_WALK", "MIN_FLY", "MIN_FLY_SPREAD"]
 
 #: What a tour is: a walk at eye height, a flyover above the roofs, an orbit of the whole scene, or the tour
 #: that came with the scene (its author's: the auditorium's A → B → C, the demo's flight).
@@ -61,8 +61,10 @@ WALK_SMOOTH = 2.0
 FLY_SPEED = 8.0
 #: A flyover's loop lasts at most this long (s) ...
 FLY_SECONDS = 150.0
-#: ... and at least this long (m): a scene smaller than that gets no flyover.
+#: ... and at least this long (m): a scene smaller than that gets no flyover, nor one whose buildings all lie
+#: within this (m) of each other.
 MIN_FLY = 120.0
+MIN_FLY_SPREAD = 40.0
 #: Height above the ground (m) ...
 FLY_HEIGHT = 40.0
 #: ... and at least this above every roof and treetop ...
@@ -230,8 +232,9 @@ def flyover_tour(grid: WalkableGrid, loop: StreetLoop, tops_lo: np.ndarray, tops
 
 def scene_tours(index, grid: WalkableGrid) -> dict[str, dict]:
     """The street tours of a scene (its ``SceneIndex`` and walkable grid): {"walk": {"kind", "keys"},
-    "flyover": {...}}, each where the scene's streets allow one (a walk of at least ``MIN_WALK`` m, a
-    flyover of at least ``MIN_FLY`` m); empty for a scene without buildings or open ground."""
+    "flyover": {...}}, each where the scene's streets allow one (a walk of at least ``MIN_WALK`` m; a
+    flyover of at least ``MIN_FLY`` m over buildings spread over ``MIN_FLY_SPREAD`` m or more); empty for a
+    scene without buildings or open ground."""
     lo, hi = footprints(index)
     blocks = dense_blocks(grid, lo, hi)
     if len(blocks) == 0 or not np.isfinite(grid.ground).any():
@@ -241,6 +244,8 @@ def scene_tours(index, grid: WalkableGrid) -> dict[str, dict]:
     keys = walk_tour(grid, loop) if loop is not None else None
     if keys is not None:
         out["walk"] = {"kind": "walk", "keys": keys}
+    if float(np.max(hi.max(axis=0) - lo.min(axis=0))) < MIN_FLY_SPREAD:
+        return out  # a flight round buildings a single look takes in circles over empty ground
     flight = street_loop(grid, blocks, FLY_SPEED * FLY_SECONDS, MIN_FLY,
                          **({"clearances": (loop.clearance,)} if loop is not None else {}))
     if flight is not None:

@@ -22,10 +22,10 @@ from tests.city import box
 
 @pytest.fixture(scope="module")
 def orbit_only(tmp_path_factory) -> Path:
-    """One small box: no streets to walk, so its tours are the orbit alone."""
+    """One small box and no ground round it: no streets to walk, so its tours are the orbit alone."""
     path = tmp_path_factory.mktemp("eval") / "box.db"
     source = SourceScene(objects=[SourceObject("shed", "building", [box((0, 0, 0), (3, 2, 2.5))])])
-    build_store(path, source, options=BuildOptions(workers=1, shape_guard=False), default_tour="walk")
+    build_store(path, source, options=BuildOptions(workers=1, shape_guard=False, ground=False), default_tour="walk")
     return path
 
 

@@ -15,6 +15,7 @@ from proto.walkable import WalkableGrid
 from server.scene.builder import BuildOptions, build_store
 from server.scene.index import MESH, TREES
 from server.scene.inspect import format_report, inspect_store
+from server.scene.source import SourceObject, SourceScene
 from server.scene.store import SceneStore
 from server.scene.streets import dense_blocks, street_loop
 from server.scene.tour import (EYE_HEIGHT, FLY_HEIGHT, FLY_SECONDS, FLY_SPEED, FLY_TURN, MIN_FLY, MIN_WALK, ROOF_CLEARANCE,
@@ -209,3 +210,17 @@ def test_den_haag_gets_a_walk_and_a_flyover_beside_its_orbit(denhaag_store):
     lo, hi = idx.object_lo[solid], idx.object_hi[solid]
     over = ((e[:, None, :2] >= lo[None, :, :2]) & (e[:, None, :2] <= hi[None, :, :2])).all(axis=2)
     assert (e[:, 2] >= np.where(over, hi[None, :, 2], -np.inf).max(axis=1) + ROOF_CLEARANCE - 1e-3).all()
+
+
+def test_a_lone_house_on_its_generated_ground_is_walked_round_but_not_flown_over(tmp_path):
+    source = SourceScene(objects=[SourceObject("house", "building", [box((0, 0, 0), (8, 6, 7))])])
+    build_store(tmp_path / "house.db", source, options=BuildOptions(workers=1, shape_guard=False), default_tour="walk")
+    with SceneStore.open(tmp_path / "house.db") as store:
+        tours = named_tours(store.index)
+        grid = store.walkable()
+        centre = (store.index.object_lo[0, :2] + store.index.object_hi[0, :2]) / 2  # recentred
+    assert set(tours) == {"orbit", "walk"}
+    e, _, _ = _dense(tours["walk"]["keys"])
+    assert grid.walkable(e).all()
+    turned = np.unwrap(np.arctan2(e[:, 1] - centre[1], e[:, 0] - centre[0]))
+    assert abs(turned[-1] - turned[0]) > 1.5 * np.pi
