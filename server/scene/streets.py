@@ -11,11 +11,15 @@ region kept a clearance from anything that blocks (a wall, a tree, the edge
 of the scene), so that a camera on it never grazes a facade. Each block's
 centre moves to the nearest open cell; blocks join the loop in order of
 density, each where it lengthens the loop least (cheapest insertion over the
-walking distances between them, Dijkstra on the grid), as long as the loop
-stays within a length budget; the legs are shortest walks
-(``server.scene.walkpath.walk_path``). The widest clearance of ``CLEARANCES``
-that lets a loop through is taken: a city's streets take a metre, an
-auditorium's aisles less.
+walking distances between them, Dijkstra on a coarsened copy of the grid: they
+only choose and order the stops), while the stops' shortest walks take at most
+``STOPS_SHARE`` of the loop's length budget. The legs are shortest walks
+(``server.scene.walkpath.walk_path``, each searched only where a walk of its
+allowed length can reach) that keep ``AVOID`` off the legs before them where
+the rest of the budget pays for the detour: a loop goes round a block rather
+than out and back along one street. A lone building is walked round. The
+widest clearance of ``CLEARANCES`` that lets a loop through is taken: a city's
+streets take a metre, an auditorium's aisles less.
 
 ``smooth_within`` rounds the loop's corners where the rounded loop still lies
 on the ground it must keep to, and eases back to the corner where it would not.
@@ -38,7 +42,7 @@ from .index import MESH
 from .walkable import GROUND_CLASSES
 from .walkpath import NoPath, largest_region, walk_distances, walk_path
 
-__all__ = ["BLOCK", "CLEARANCES", "MAX_BLOCKS", "footprints", "dense_blocks", "open_ground",
+__all__ = ["BLOCK", "CLEARANCES", "MAX_BLOCKS", "AVOID", "DETOUR", "STOPS_SHARE", "footprints", "dense_blocks", "open_ground",
            "StreetLoop", "street_loop", "resample_loop", "smooth_within"]
 
 #: A city block (m): the density's blur, and the least distance between two blocks a loop visits.
