@@ -29,7 +29,7 @@ from bench.scenarios.verdicts import (
 )
 
 __all__ = [
-    "SCENARIOS", "Context", "WARMUP_S", "MAX_FPS", "run_scenarios", "print_results", "coarsest_frame_ms", "spin",
+    "SCENARIOS", "Context", "WARMUP_S", "MAX_FPS", "run_scenarios", "tour_index", "print_results", "coarsest_frame_ms", "spin",
     "turn", "oscillation", "drift", "below_coarsest", "network",
 ]
 
@@ -487,6 +487,20 @@ SCENARIOS: dict[str, tuple[str, Callable[[Context], dict]]] = {
 }
 
 
+def tour_index(store: str | os.PathLike[str], tour: str):
+    """The store's index with its tour ``tour`` in place of the default one (and its start, and no viewpoints
+    unless ``tour`` is the default: they are times of the default tour); KeyError naming the tours there are."""
+    from dataclasses import replace
+
+    from server.scene.store import SceneStore
+    from server.scene.tour import default_tour_name, tour_for
+
+    with SceneStore.open(store) as s:
+        keys, start = tour_for(s.index, tour)
+        own = tour == default_tour_name(s.index)
+        return replace(s.index, tour=keys, start=start, meta=s.index.meta if own else {**s.index.meta, "viewpoints": {}})
+
+
 def run_scenarios(
     store: str | os.PathLike[str],
     scene: str,
@@ -510,20 +524,8 @@ def run_scenarios(
     unknown = [n for n in names if n not in SCENARIOS]
     if unknown:
         raise ValueError(f"unknown scenario(s) {', '.join(unknown)}; known: {', '.join(SCENARIOS)}")
-    index = None
-    if tour is not None:
-        from dataclasses import replace
-
-        from server.scene.store import SceneStore
-        from server.scene.tour import default_tour_name, tour_for
-
-        with SceneStore.open(store) as s:
-            keys, start = tour_for(s.index, tour)
-            own = tour == default_tour_name(s.index)  # the store's viewpoints are times of its default tour
-            index = replace(s.index, tour=keys, start=start,
-                            meta=s.index.meta if own else {**s.index.meta, "viewpoints": {}})
     ctx = Context(Path(store), scene, target_ms=float(target_ms), method=method, viewport=tuple(viewport), tau=tau,
-                  seed=seed, scale=float(duration_scale), index=index)
+                  seed=seed, scale=float(duration_scale), index=None if tour is None else tour_index(store, tour))
     results: list[dict] = []
     if progress is not None:
         progress("scenarios", 0, len(names))

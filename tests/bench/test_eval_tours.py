@@ -66,3 +66,21 @@ def test_the_eval_command_names_the_tours_when_one_is_missing(city_store):
                           cwd=Path(__file__).resolve().parents[2])
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert "'tram'" in done.stderr and "flyover, orbit, walk" in done.stderr
+
+
+def test_the_scenarios_take_their_anchor_from_the_tour_named(city_store, auditorium_store):
+    from bench.scenarios.paths import anchor_of
+    from bench.scenarios.run import tour_index
+
+    index = tour_index(city_store, "flyover")
+    flyover = Tour(index.tour)
+    path = flyover.pose_at(np.linspace(0.0, flyover.duration, 4000))[0]
+    anchor = anchor_of(index, viewport=(160, 90))
+    assert np.linalg.norm(path - anchor.eye, axis=1).min() < 1.0 and "viewpoint" not in anchor.source
+    with SceneStore.open(city_store) as s:
+        assert index.tour == named_tours(s.index)["flyover"]["keys"] and index.start["eye"] == index.tour[0]["eye"]
+    # The auditorium's viewpoints are times of its own tour: they stay with it, and go with any other.
+    assert tour_index(auditorium_store, "scene").meta["viewpoints"].keys() == {"A", "B", "C"}
+    assert tour_index(auditorium_store, "walk").meta["viewpoints"] == {}
+    with pytest.raises(KeyError, match="its tours: scene, walk"):
+        tour_index(auditorium_store, "orbit")
