@@ -456,11 +456,31 @@ def loadtest(
 EVAL_METHODS = ",".join(METHODS)
 
 
+def _eval_tour(store: Path, name: str | None) -> str | None:
+    """The tour ``walkstream eval`` runs over: ``name`` if the store has it (else a one-line error naming the
+    tours it has), or ``bench.evaluate.eval_tour``'s choice."""
+    from bench.evaluate import eval_tour
+    from server.scene.store import SceneStore
+    from server.scene.tour import named_tours
+
+    with SceneStore.open(store) as s:
+        if name is None:
+            return eval_tour(s.index)
+        tours = named_tours(s.index)
+        if name not in tours:
+            raise typer.BadParameter(f"the scene {s.index.name!r} has no tour {name!r}; its tours: "
+                                     f"{', '.join(sorted(tours)) or 'none'}", param_hint="--tour")
+    return name
+
+
 def eval_(
     scene: str = typer.Argument(..., metavar="SCENE", help="a named scene (auditorium, denhaag, sthelens, demo, "
                                 "megacity), a scene store (.db), or a CityJSON/glTF/OBJ/PLY/DEM/CityGML file "
-                                "(built once with a generated tour)"),
+                                "(built once with generated tours)"),
     out: Optional[Path] = typer.Option(None, help="report folder (default: walkstream-out/eval-SCENE)"),
+    tour: Optional[str] = typer.Option(None, "--tour", help="the scene's tour to run over (walk, flyover, orbit, "
+                                       "...: `walkstream inspect` lists them; default: the scene's own tour where "
+                                       "it came with one, else its walk where it has one, else its default)"),
     target_ms: float = typer.Option(50.0, help="the target frame time of Table 1 and Figure 7 (ms)"),
     budgets: Optional[str] = typer.Option(None, help="target frame times to run, comma-separated ms "
                                           "(default: ½, 1 and 2 × the target)"),
@@ -541,18 +561,19 @@ def eval_(
             store, name = resolve_scene(scene, seed=seed, cache_dir=DEFAULT_CACHE, progress=tick)
         except (ValueError, FileNotFoundError) as exc:
             raise typer.BadParameter(str(exc), param_hint="SCENE")
+        tour = _eval_tour(store, tour)
         folder = out or Path("walkstream-out") / f"eval-{name}"
         folder.mkdir(parents=True, exist_ok=True)
         results = ev.evaluate(store, scene=name, methods=names, target_ms=target_ms, budgets_ms=budget_list,
                               duration=duration, viewport=(width, height), tau=tau, seed=seed, quality=quality,
                               every=every, samples=samples or None, out=folder, progress=tick, repeats=repeats,
-                              governor=governor, algorithms=(algorithm,), pin=pin)
+                              governor=governor, algorithms=(algorithm,), pin=pin, tour=tour)
         if scenarios:
             from bench.scenarios.run import run_scenarios
 
             results["scenarios"] = run_scenarios(store, name, target_ms=target_ms, method=scenario_method,
                                                  names=scenario or None, viewport=(width, height), tau=tau,
-                                                 seed=seed, progress=tick)
+                                                 seed=seed, progress=tick, tour=tour)
     index = write_report(results, folder)
     for line in summary_lines(results):
         console.print(line, markup=False, highlight=False)
@@ -561,7 +582,7 @@ def eval_(
     console.print(f"report: {index}")
     if as_json:
         print(json.dumps({
-            "scene": name, "store": str(store), "report": str(index), "target_ms": target_ms,
+            "scene": name, "store": str(store), "report": str(index), "tour": tour, "target_ms": target_ms,
             "budgets_ms": results.get("budgets_ms"), "table1": table1(results),
             "checks": checks(results),
             "runs": [{"method": r["method"], "target_ms": r["target_ms"], "governor": r.get("governor", False),

@@ -42,7 +42,7 @@ from bench.methods import METHODS, Method
 
 __all__ = [
     "RunSpec", "ALGORITHMS", "REPEATS", "MAX_FPS", "MAX_DURATION_S", "WARMUP_S", "scene_has_continuous", "plan", "skipped_methods",
-    "tour_of", "run_one", "summarize_frames", "evaluate", "print_table", "table_rows",
+    "tour_of", "eval_tour", "run_one", "summarize_frames", "evaluate", "print_table", "table_rows",
 ]
 
 Progress = Callable[[str, int, int], None]
@@ -151,24 +151,42 @@ def plan(methods: Iterable[str | Method] | None, target_ms: float, budgets_ms: I
     return [RunSpec(sp.method, sp.target_ms, sp.governor, r) for r in range(repeats) for sp in specs]
 
 
-def tour_of(store: str | Path) -> tuple[list[dict], dict[str, float], float]:
-    """The store's tour keys, its named viewpoints (tour times, e.g. F&S's A, B, C) and its length (s)."""
+def eval_tour(index) -> str | None:
+    """The tour an evaluation runs over by default: the scene's own where it came with one (the auditorium's
+    A → B → C, the demo's flight), else its ``walk`` where it has one — a walkthrough evaluated from an orbit
+    measures the wrong thing — else its default tour (None: it has none)."""
+    from server.scene.tour import default_tour_name, named_tours
+
+    tours = named_tours(index)
+    default = default_tour_name(index)
+    if default in tours and tours[default]["kind"] == "scene":
+        return default
+    return "walk" if "walk" in tours else default
+
+
+def tour_of(store: str | Path, name: str | None = None) -> tuple[list[dict], dict[str, float], float]:
+    """The keys of the store's tour ``name`` (None: its default tour), its named viewpoints (tour times, e.g.
+    F&S's A, B, C: the default tour's) and its length (s); KeyError naming the tours there are for a name the
+    store lacks."""
     from server.scene.store import SceneStore
+    from server.scene.tour import default_tour_name, tour_for
 
     with SceneStore.open(store) as s:
-        keys = [dict(k) for k in s.index.tour]
-        viewpoints = {str(k): float(v) for k, v in (s.index.meta.get("viewpoints") or {}).items()}
+        keys = [dict(k) for k in tour_for(s.index, name)[0]]
+        default = name is None or name == default_tour_name(s.index)
+        viewpoints = {str(k): float(v) for k, v in (s.index.meta.get("viewpoints") or {}).items()} if default else {}
     length = max((float(k["t"]) for k in keys), default=0.0)
     return keys, viewpoints, length
 
 
 def derive_viewpoints(store: str | Path, duration: float, warmup: float, *, viewport=(640, 360), fov_y: float = 60.0,
-                      missing: Sequence[str] = ("A", "C")) -> dict[str, tuple[float, str]]:
+                      missing: Sequence[str] = ("A", "C"), keys: Sequence[dict] | None = None
+                      ) -> dict[str, tuple[float, str]]:
     """Stand-ins for F&S's viewpoints on a scene that names none: {label: (tour time, why)}.
 
     A (many large, complex objects): the tour time with the most objects in view; C (sudden complexity):
     the time whose next second adds the most objects to the view. Sampled every 0.5 s between the warm-up
-    and the run's end.
+    and the run's end, along ``keys`` (default: the store's tour).
     """
     if not missing:
         return {}
@@ -178,9 +196,10 @@ def derive_viewpoints(store: str | Path, duration: float, warmup: float, *, view
 
     with SceneStore.open(store) as s:
         index = s.index
-        if not len(index.tour):
+        keys = list(index.tour) if keys is None else list(keys)
+        if not keys:
             return {}
-        tour = Tour(list(index.tour))
+        tour = Tour(keys)
         ts = np.arange(warmup + 0.5, max(duration - 0.5, warmup + 0.5) + 1e-9, 0.5)
         counts = visible_counts(index, tour.pose_at(ts), fov_y, tuple(viewport))
     out: dict[str, tuple[float, str]] = {}
@@ -274,8 +293,10 @@ def run_one(
     calibrate: bool = True,
     calibration_cores: Sequence[int] | None = None,
     plan: bool = False,
+    tour_name: str | None = None,
 ) -> tuple[dict, list]:
-    """One fresh session of ``spec`` over the tour (the server's, or ``tour``); returns (run dict, traces).
+    """One fresh session of ``spec`` over the tour (the server's — its ``tour_name`` one, or its default —
+    or ``tour``); returns (run dict, traces).
 
     The run dict has the schema's method, target_ms, solver, predict, morph, frames (every frame, the
     warm-up included, plus ``seq``: the selection drawn, −1 before the first), an empty quality and a
@@ -296,7 +317,7 @@ def run_one(
             server_url, scene, duration=duration, viewport=tuple(viewport), fov_y=fov_y,
             target_frame_time=spec.target_ms / 1e3, solver=m.solver, predict=m.predict, morph=m.morph, trace=True,
             tour=tour, on_frame=on_frame, max_fps=max_fps, algorithms=tuple(algorithms), governor=spec.governor,
-            plan=plan,
+            plan=plan, tour_name=tour_name,
         )
     frames = _frames_dict(run.frames)
     summary = summarize_frames(frames, warmup, spec.target_ms)
@@ -350,8 +371,12 @@ def evaluate(
     governor: bool = True,
     algorithms: Sequence[str] = ALGORITHMS,
     pin: bool = True,
+    tour: str | None = None,
 ) -> dict:
     """Run every method over ``store``'s tour on one real server; the schema's results dict.
+
+    ``tour`` names the store's tour the runs follow (default: ``eval_tour``'s choice); ValueError naming the
+    tours there are if the store has none of that name.
 
     ``duration`` defaults to the tour's length, at most ``MAX_DURATION_S``; ``budgets_ms`` to 0.5×, 1× and
     2× ``target_ms`` (the target is always among them). ``progress(stage, done, total)`` follows the stages
@@ -377,11 +402,15 @@ def evaluate(
         raise ValueError(f"warmup must be non-negative, got {warmup!r}")
     with SceneStore.open(store) as s:
         scene = scene or s.index.name
+        tour = eval_tour(s.index) if tour is None else tour
     chosen = _methods(methods)
     continuous = scene_has_continuous(store)
     budgets = _budgets(target_ms, budgets_ms)
     specs = plan(chosen, target_ms, budgets, continuous=continuous, repeats=repeats, governor=governor)
-    keys, viewpoints, length = tour_of(store)
+    try:
+        keys, viewpoints, length = tour_of(store, tour)
+    except KeyError as exc:
+        raise ValueError(exc.args[0]) from None
     if duration is None:
         if length <= 0:
             raise ValueError(f"{store}: the store has no tour to run over; give a duration")
@@ -391,7 +420,7 @@ def evaluate(
     results: dict[str, Any] = {
         "scene": scene, "store": str(store.resolve()), "target_ms": float(target_ms), "budgets_ms": budgets,
         "viewport": [int(v) for v in viewport], "fov_y": float(fov_y), "tau_s": float(tau), "seed": int(seed),
-        "duration_s": float(duration), "warmup_s": float(warmup), "every": int(every), "samples": samples,
+        "tour": tour, "duration_s": float(duration), "warmup_s": float(warmup), "every": int(every), "samples": samples,
         "viewpoints": {k: v for k, v in viewpoints.items() if v <= duration},
         "methods": [m.name for m in chosen if not (m.continuous_only and not continuous)],
         "skipped": skipped_methods(chosen, continuous),
@@ -400,7 +429,7 @@ def evaluate(
         "runs": [], "images": {},
     }
     derived = derive_viewpoints(store, duration, warmup, viewport=viewport, fov_y=fov_y,
-                                missing=[k for k in ("A", "C") if k not in results["viewpoints"]])
+                                missing=[k for k in ("A", "C") if k not in results["viewpoints"]], keys=keys)
     if derived:
         results["viewpoints"].update({k: t for k, (t, _) in derived.items()})
         results["viewpoints_derived"] = {k: why for k, (_, why) in derived.items()}
@@ -418,7 +447,7 @@ def evaluate(
                 for i, spec in enumerate(specs):
                     run, traces = run_one(server.url, scene, spec, duration=duration, viewport=viewport,
                                           fov_y=fov_y, warmup=warmup, max_fps=max_fps, algorithms=algorithms,
-                                          calibration_cores=results["cores"].get("server"))
+                                          calibration_cores=results["cores"].get("server"), tour_name=tour)
                     results["runs"].append(run)
                     _spill(results, spec, traces, i, spill, spilled, near, at_views, quality, target_ms)
                     del traces

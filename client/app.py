@@ -97,6 +97,7 @@ def run_client(
     calibrate: bool = True,
     plan: bool = False,
     record_tour: Path | None = None,
+    tour_name: str | None = None,
 ) -> ClientRun:
     """Run one session for ``duration`` seconds of frames and return what happened.
 
@@ -128,6 +129,8 @@ def run_client(
     hello (``Hello.plan``): it then predicts the camera along the tour instead of extrapolating.
     ``record_tour`` (with ``window`` and a navigator): M or Space marks the current pose as a tour stop, and the
     stops are written there when the run ends (``client.kiosk.record``; nothing is written if none was marked).
+    ``tour_name`` asks the server for the scene's tour of that name (``Hello.tour``: walk, flyover, orbit, ...)
+    in place of its default one; a name the scene lacks is refused (``ClientError`` naming the tours it has).
     Raises ``client.connection.ClientError`` if the session cannot be opened, ``client.window.WindowError``
     if the window cannot.
     """
@@ -185,7 +188,7 @@ def run_client(
             target_frame_time=target_frame_time, solver=solver, client=CLIENT_NAME, predict=predict, morph=morph,
             algorithms=list(algorithms), cache_bytes=cache_bytes, governor=governor,
             c_vertex=renderer_c_vertex(renderer) if calibrate else None, **limits,
-            plan=tour_plan(tour, duration) if plan else None,
+            plan=tour_plan(tour, duration) if plan else None, tour=tour_name,
         )
         opened = open_patiently(urls, hello, timeout, max(0.0, reconnect_timeout))
         link = Link(urls, hello, start, timeout=timeout, patience=reconnect_timeout, silence=silence_timeout)

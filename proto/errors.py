@@ -20,6 +20,7 @@ ERROR_CODES = {
     "version": "the protocol version is not supported",
     "unknown_scene": "no scene of that name is served here",
     "unknown_solver": "no solver of that name exists",
+    "unknown_tour": "the scene has no tour of that name",
     "bad_state": "the message is not allowed in the session's current state",
     "bad_geometry": "a geometry payload does not decode",
     "bad_walkable": "a walkable grid does not decode",

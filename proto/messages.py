@@ -244,6 +244,9 @@ class Hello(_Message):
     plan: TourPlan | None = None
     #: Send the scene's walkable grid in the welcome (``proto.walkable``), for walking with collision.
     walkable: bool = False
+    #: The scene's tour to follow, by name (a store's named tours: walk, flyover, orbit, ...): the welcome
+    #: carries its keys; None: the scene's default tour.
+    tour: Name | None = None
 
     @model_validator(mode="after")
     def _distinct(self) -> "Hello":

@@ -48,6 +48,7 @@ from .limits import MEASUREMENT_SOLVERS, WS_MAX_SIZE, Admission, RateGuard, Repl
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .peers import Peers
 from .scene.store import SceneStore
+from .scene.tour import named_tours
 from .session import Session, SessionConfig, SessionState
 from .session.payloads import packed
 from .session.table import SceneTable
@@ -190,6 +191,8 @@ def create_app(
                     "triangles_full_detail": int(idx.rep_faces[last[idx.flat]].sum()),
                     "bounds": idx.bounds.tolist(),
                     "tour_seconds": float(idx.tour[-1]["t"]) if idx.tour else 0.0,
+                    # What a hello's ``tour`` may name.
+                    "tours": {n: {"kind": t["kind"], "duration": t["duration"]} for n, t in named_tours(idx).items()},
                 }
             )
         return out

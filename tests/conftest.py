@@ -46,6 +46,18 @@ def denhaag_store(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def city_store(tmp_path_factory) -> Path:
+    """A small synthetic city (``tests.city``) built as a user's file is: walk (its default), flyover, orbit."""
+    from server.scene.builder import BuildOptions, build_store
+    from tests.city import city_source
+
+    source, _ = city_source()
+    path = tmp_path_factory.mktemp("scenes") / "city.db"
+    build_store(path, source, name="city", options=BuildOptions(workers=1, shape_guard=False), default_tour="walk")
+    return path
+
+
+@pytest.fixture(scope="session")
 def auditorium_store(tmp_path_factory) -> Path:
     """The auditorium (``walkstream build auditorium``, seed 0): 440 chairs, 2.5 M triangles, built once (~12 s)."""
     from server.scene.catalog import build_named

@@ -10,6 +10,7 @@ Each command imports what it needs when it runs, so ``--help`` is instant.
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 from typing import Literal, Optional
@@ -48,6 +49,9 @@ def client(
                                 "Shift faster, Tab fly/walk, F false colour, P screenshot, Esc quits"),
     navigate: Literal["tour", "fly", "walk"] = typer.Option(
         "tour", help="who moves the camera: the scene's tour, or you flying or walking (needs --window)"),
+    tour: Optional[str] = typer.Option(None, "--tour", help="follow the scene's tour of this name (walk, flyover, "
+                                       "orbit, ...: `walkstream inspect` lists them; default: the scene's default "
+                                       "tour)"),
     colour: Literal["data", "objects", "levels"] = typer.Option(
         "data", help="what surfaces are drawn in: the scene's colours (semantic surfaces, materials), a tint "
                      "per object, or a colour per drawn level with morphs striped"),
@@ -73,6 +77,12 @@ def client(
         server_cli.fail(str(exc))
     if navigate != "tour" and not window:
         raise typer.BadParameter("fly and walk are driven by keys and mouse: add --window", param_hint="--navigate")
+    if tour is not None:
+        if navigate != "tour" or record_tour is not None:
+            raise typer.BadParameter("a tour moves the camera itself: drop --navigate and --record-tour",
+                                     param_hint="--tour")
+        if not re.fullmatch(r"[A-Za-z0-9_.\-]{1,128}", tour):
+            raise typer.BadParameter(f"{tour!r}: a tour's name is letters, digits, '_', '.' or '-'", param_hint="--tour")
     if record_tour is not None:
         if not window:
             raise typer.BadParameter("stops are marked with a key in the window: add --window",
@@ -88,7 +98,7 @@ def client(
             url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3,
             screenshot=screenshot, solver=solver, predict=predict, morph=morph, window=window, navigate=navigate,
             false_colour=false_colour or colour == "levels", colours="objects" if colour == "objects" else "data",
-            reconnect_timeout=reconnect_timeout, governor=governor, record_tour=record_tour,
+            reconnect_timeout=reconnect_timeout, governor=governor, record_tour=record_tour, tour_name=tour,
         )
     except (WindowError, ClientError) as exc:
         typer.echo(f"error: {exc}", err=True)

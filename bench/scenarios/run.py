@@ -29,7 +29,7 @@ from bench.scenarios.verdicts import (
 )
 
 __all__ = [
-    "SCENARIOS", "Context", "WARMUP_S", "MAX_FPS", "run_scenarios", "print_results", "coarsest_frame_ms", "spin",
+    "SCENARIOS", "Context", "WARMUP_S", "MAX_FPS", "run_scenarios", "tour_index", "print_results", "coarsest_frame_ms", "spin",
     "turn", "oscillation", "drift", "below_coarsest", "network",
 ]
 
@@ -487,6 +487,20 @@ SCENARIOS: dict[str, tuple[str, Callable[[Context], dict]]] = {
 }
 
 
+def tour_index(store: str | os.PathLike[str], tour: str):
+    """The store's index with its tour ``tour`` in place of the default one (and its start, and no viewpoints
+    unless ``tour`` is the default: they are times of the default tour); KeyError naming the tours there are."""
+    from dataclasses import replace
+
+    from server.scene.store import SceneStore
+    from server.scene.tour import default_tour_name, tour_for
+
+    with SceneStore.open(store) as s:
+        keys, start = tour_for(s.index, tour)
+        own = tour == default_tour_name(s.index)
+        return replace(s.index, tour=keys, start=start, meta=s.index.meta if own else {**s.index.meta, "viewpoints": {}})
+
+
 def run_scenarios(
     store: str | os.PathLike[str],
     scene: str,
@@ -499,17 +513,19 @@ def run_scenarios(
     progress: Tick | None = None,
     seed: int = 0,
     duration_scale: float = 1.0,
+    tour: str | None = None,
 ) -> list[dict]:
     """Run the named scenarios (default: all, in ``SCENARIOS`` order) with ``method`` against one server on
     ``store``; one result each (``name``, ``title``, ``passed``, ``line``, ``figures``). A scenario that
     raises is a FAIL with the error in its line, and the rest still run. ``progress("scenarios", done,
-    total)`` after each; ``duration_scale`` shortens the phases (tests)."""
+    total)`` after each; ``duration_scale`` shortens the phases (tests); ``tour`` names the store's tour the
+    scenarios take their anchor and segments from (default: its default tour)."""
     names = list(SCENARIOS) if names is None else list(names)
     unknown = [n for n in names if n not in SCENARIOS]
     if unknown:
         raise ValueError(f"unknown scenario(s) {', '.join(unknown)}; known: {', '.join(SCENARIOS)}")
     ctx = Context(Path(store), scene, target_ms=float(target_ms), method=method, viewport=tuple(viewport), tau=tau,
-                  seed=seed, scale=float(duration_scale))
+                  seed=seed, scale=float(duration_scale), index=None if tour is None else tour_index(store, tour))
     results: list[dict] = []
     if progress is not None:
         progress("scenarios", 0, len(names))

@@ -1,4 +1,4 @@
-"""Turn a ``SourceScene`` into a scene store: LOD chains, hierarchies, point models, tour.
+"""Turn a ``SourceScene`` into a scene store: LOD chains, hierarchies, point models, tours.
 
 The stages, each with its own progress count:
 
@@ -48,7 +48,7 @@ from .lod import build_chain, chain_from_levels
 from .source import Mesh, SourceScene
 from .store import SceneStore
 from .surface import is_closed
-from .tour import orbit_tour
+from .tour import named_tours, orbit_tour, scene_tours
 from .workers import POOL_MIN_JOBS, default_workers, pool_map
 from .writer import SceneWriter, encode_levels
 
@@ -77,6 +77,8 @@ class BuildOptions:
     bounds          : silhouette IoU / area ratio / FLIP a kept level or proxy must reach
     max_proxy_faces : most faces of an HLOD proxy
     ground          : lay a ground under a scene that has no terrain (``server.scene.ground``)
+    street_tours    : make the ``walk`` and ``flyover`` tours where the scene's streets allow them
+                      (``server.scene.tour.scene_tours``)
     """
 
     hlod: bool | str = "auto"
@@ -92,6 +94,7 @@ class BuildOptions:
     bounds: Bounds = Bounds()
     max_proxy_faces: int = 4096
     ground: bool = True
+    street_tours: bool = True
 
 
 #: Full-detail vertices per object from which HLOD proxies' errors are measured.
@@ -239,11 +242,14 @@ def build_store(
     options: BuildOptions = BuildOptions(),
     progress: Progress | None = None,
     recentre: bool = True,
+    default_tour: str | None = None,
 ) -> dict:
     """Build ``source`` into a new store at ``path`` (atomically); returns a summary.
 
-    tour       : the camera tour in source coordinates; default: an orbit of the scene
-    viewpoints : named tour times (e.g. F&S's A, B, C), recorded in meta
+    tour       : the camera tour in source coordinates (named "scene"); default: an orbit of the scene
+                 (named "orbit"); either is the default tour, beside the street tours (``options``)
+    viewpoints : named tour times (e.g. F&S's A, B, C) of that tour, recorded in meta
+    default_tour: the name of a street tour ("walk", "flyover") to make the default where the scene has it
     """
     started = time.perf_counter()
     tick = progress or (lambda stage, done, total: None)
@@ -407,10 +413,12 @@ def build_store(
         if tour_box is not None and groups is not None and len(groups.group_first):
             tour_box = (np.minimum(tour_box[0], groups.lo.min(axis=0)), np.maximum(tour_box[1], groups.hi.max(axis=0)))
         if tour is None:
-            tour_keys = orbit_tour(*(tour_box if tour_box is not None else writer.bounds))
+            writer.set_tour(orbit_tour(*(tour_box if tour_box is not None else writer.bounds)), name="orbit",
+                            kind="orbit")
         else:
-            tour_keys = [{**k, "eye": (np.asarray(k["eye"], np.float64) - origin).tolist()} for k in tour]
-        writer.set_tour(tour_keys)
+            writer.set_tour([{**k, "eye": (np.asarray(k["eye"], np.float64) - origin).tolist()} for k in tour])
+        if options.street_tours:
+            writer.make_tours(_street_tours, prefer=(default_tour,) if default_tour else ())
         writer.set_meta(shape_guard={"levels": levels, **({"proxies": proxies} if proxies else {})},
                         origin=origin.tolist(), crs=source.crs, viewpoints=viewpoints or {}, sun=list(DEFAULT_SUN),
                         ground="generated" if tour_box is not None else ("none" if bare else "terrain"),
@@ -426,6 +434,7 @@ def build_store(
         flat = idx.flat
         triangles = int(idx.rep_faces[full[flat]].sum())
         height = idx.height
+        tours = {name: round(float(t["duration"]), 1) for name, t in named_tours(idx).items()}
     return {
         "path": str(path),
         "objects": counts,
@@ -433,12 +442,18 @@ def build_store(
         "triangles": triangles,
         "tree_instances": len(source.trees) if source.trees is not None else 0,
         "hierarchy_depth": height,
+        "tours": tours,
         "bytes": Path(path).stat().st_size,
         "seconds": round(time.perf_counter() - started, 2),
         "stages": {k: round(v, 2) for k, v in timings.items()},
         "levels": levels,
         **({"proxies": proxies} if proxies is not None else {}),
     }
+
+
+def _street_tours(store: SceneStore) -> dict:
+    """The walk and flyover of a finished store (``SceneWriter.make_tours``)."""
+    return scene_tours(store.index, store.walkable())
 
 
 def _guard_summary(chains: list[ChainRows], tree, bounds: Bounds) -> tuple[dict, dict | None]:

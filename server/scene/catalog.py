@@ -9,7 +9,9 @@ Every named scene is deterministic from its seed:
 - ``megacity``   — ≥ 40k generated buildings and ≥ 20M triangles, for scale benchmarks.
 
 Anything else is taken as a path to a CityJSON, glTF/GLB, OBJ, PLY, USGS DEM,
-``.npz`` height grid or CityGML file, built with a generated orbit tour.
+``.npz`` height grid or CityGML file, built with generated tours: a ``walk`` through its
+streets (its default tour, where it has streets), a ``flyover`` and an ``orbit``
+(``server.scene.tour``). A named scene gets the street tours beside its own default tour.
 
 Either kind can draw its trees with scanned tree models (``tree_models``: point-cloud
 files, ``server.scene.scans``); a file's own trees may name theirs (the ``tree_model``
@@ -225,10 +227,11 @@ def build_named(name: str, path: str | os.PathLike[str], *, seed: int = 0, size:
 
 def build_path(source: str | os.PathLike[str], path: str | os.PathLike[str], *, workers: int | None = None,
                progress: Progress | None = None, tree_models: Sequence[str | os.PathLike[str]] = ()) -> dict:
-    """Import a user's file and build it, with a generated tour; ``tree_models`` as in ``build_named``."""
+    """Import a user's file and build it, with generated tours (the walk the default where there is one);
+    ``tree_models`` as in ``build_named``."""
     from .importers import load_source
 
     scene = with_tree_models(load_source(Path(source)), tree_models, Path(source).parent, progress)
     options = BuildOptions(workers=workers) if workers else BuildOptions()
     return build_store(path, scene, name=Path(source).name.split(".")[0], generator=f"walkstream build {source}",
-                       options=options, progress=progress)
+                       options=options, progress=progress, default_tour="walk")

@@ -16,6 +16,7 @@ import numpy as np
 from .fidelity import Bounds
 from .index import HLOD, KINDS, TERRAIN, TREES
 from .store import SceneStore
+from .tour import default_tour_name, named_tours
 
 __all__ = ["inspect_store", "format_report"]
 
@@ -90,10 +91,18 @@ def inspect_store(path: str | os.PathLike[str]) -> dict:
         or [{"id": i, "name": None, "source": None, "points": int(n)} for i, n in enumerate(idx.model_points)],
         "tree_instances": int(idx.meta.get("tree_instances", 0)),
         "tour_seconds": float(idx.tour[-1]["t"]) if idx.tour else 0.0,
+        "tours": _tours(idx),
         "viewpoints": idx.meta.get("viewpoints") or {},
         "shape_guard": idx.meta.get("shape_guard") or {},
         "walkable": walkable,
     }
+
+
+def _tours(idx) -> list[dict]:
+    """The store's tours: name, kind, duration (s), keys, and which one a client that names none is sent."""
+    default = default_tour_name(idx)
+    return [{"name": name, "kind": t["kind"], "duration": round(float(t["duration"]), 3), "keys": len(t["keys"]),
+             "default": name == default} for name, t in named_tours(idx).items()]
 
 
 def _walkable(grid) -> dict:
@@ -165,6 +174,8 @@ def format_report(r: dict) -> list[str]:
         f"  crs {r['crs'] or '-'}, origin {r['origin']}, tour {r['tour_seconds']:.0f} s"
         + (f", viewpoints {r['viewpoints']}" if r["viewpoints"] else ""),
         "  classes: " + ", ".join(f"{k} {v}" for k, v in r["classes"].items()),
+        "  tours: " + (", ".join(f"{t['name']} ({t['kind']}, {t['duration']:.0f} s{', default' if t['default'] else ''})"
+                                 for t in r["tours"]) or "none"),
     ]
     for kind, e in r["kinds"].items():
         lines.append(f"  {kind}: {e['objects']} objects, {e['representations']} reps, {_n(e['bytes'])}B, "

@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from proto.walkable import WalkableGrid
 
-__all__ = ["largest_region", "walk_path", "NoPath"]
+__all__ = ["largest_region", "walk_path", "walk_distances", "NoPath"]
 
 
 class NoPath(ValueError):
@@ -59,9 +59,30 @@ def _line_open(grid: WalkableGrid, a: np.ndarray, b: np.ndarray) -> bool:
     return bool(grid.walkable(a + s * (b - a)).all())
 
 
-def walk_path(grid: WalkableGrid, start, goal) -> np.ndarray:
+def walk_distances(grid: WalkableGrid, points, limit: float = np.inf) -> np.ndarray:
+    """(k, k) float64: the length (m) of the shortest walk on the grid's eight-neighbour graph between each pair
+    of ``points`` ((k, 2) x, y), inf where there is none, where an end is not on walkable ground, or where the
+    walk is longer than ``limit`` (searches stop there, which keeps them cheap on a large grid)."""
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    out = np.full((len(pts), len(pts)), np.inf)
+    open_ = np.isfinite(grid.ground)
+    rows, cols, inside = grid.cells(pts)
+    ok = inside & open_[rows, cols]
+    if not ok.any():
+        return out
+    nodes = rows * grid.shape[1] + cols
+    dist = dijkstra(_graph(open_, grid.cell), directed=False, indices=nodes[ok], limit=limit)
+    dist = np.atleast_2d(dist)
+    sub = np.full((int(ok.sum()), len(pts)), np.inf)
+    sub[:, ok] = dist[:, nodes[ok]]
+    out[ok] = sub
+    return out
+
+
+def walk_path(grid: WalkableGrid, start, goal, limit: float = np.inf) -> np.ndarray:
     """The shortest walk from ``start`` to ``goal`` ((2,) x, y) on the grid, as waypoints (k, 2) float64 from
-    start to goal, each straight leg on walkable ground; ``NoPath`` if there is none."""
+    start to goal, each straight leg on walkable ground; ``NoPath`` if there is none (none within ``limit``
+    m: the search stops there)."""
     start, goal = np.asarray(start, np.float64)[:2], np.asarray(goal, np.float64)[:2]
     open_ = np.isfinite(grid.ground)
     (r0, r1), (c0, c1), inside = grid.cells(np.stack([start, goal]))
@@ -69,9 +90,10 @@ def walk_path(grid: WalkableGrid, start, goal) -> np.ndarray:
         raise NoPath(f"no walk from {start.tolist()} to {goal.tolist()}: an end is not on walkable ground")
     ny, nx = grid.shape
     a, b = r0 * nx + c0, r1 * nx + c1
-    _, pred = dijkstra(_graph(open_, grid.cell), directed=False, indices=a, return_predecessors=True)
+    _, pred = dijkstra(_graph(open_, grid.cell), directed=False, indices=a, return_predecessors=True, limit=limit)
     if b != a and pred[b] < 0:
-        raise NoPath(f"no walk from {start.tolist()} to {goal.tolist()}: they lie in different regions")
+        far = "" if np.isinf(limit) else f" within {limit:g} m"
+        raise NoPath(f"no walk from {start.tolist()} to {goal.tolist()}{far}: they lie in different regions")
     chain = [b]
     while chain[-1] != a:
         chain.append(int(pred[chain[-1]]))

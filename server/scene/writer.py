@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sqlite3
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import msgpack
 import numpy as np
@@ -29,9 +30,13 @@ from proto.morph import encode_morph
 
 from .index import KINDS, MESH
 from .store import APPLICATION_ID, META_KEYS, OPTIONAL_TABLES, SCHEMA_VERSION, TABLES, SceneStore, StoreError, walkable_row
+from .tour import TOUR_KINDS
 from .walkable import walkable_grid
 
-__all__ = ["SceneWriter", "encode_levels", "object_box"]
+__all__ = ["SceneWriter", "encode_levels", "object_box", "TOUR_NAME"]
+
+#: What a tour's name may be (``proto.messages.Name``: a client names it in its hello).
+TOUR_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,128}$")
 
 
 def _vec3(v: Sequence[float]) -> list[float]:
@@ -80,6 +85,9 @@ class SceneWriter:
         self._lo = np.full(3, np.inf)
         self._hi = np.full(3, -np.inf)
         self._tour: list[dict] = []
+        self._tours: dict[str, dict] = {}  # name → {"kind", "keys"}
+        self._default: str | None = None  # the name of ``_tour``
+        self._maker: tuple[Callable, tuple[str, ...]] | None = None
         self._start: dict | None = None
         self._done = False
         directory = self.path.parent if str(self.path.parent) else Path(".")
@@ -218,23 +226,48 @@ class SceneWriter:
     def set_meta(self, **values: Any) -> None:
         """Extra JSON meta values (origin, crs, viewpoints, sources, …), written on commit."""
         self._check_open()
-        reserved = set(META_KEYS) | {"generator", "seed", "created"}
+        reserved = set(META_KEYS) | {"generator", "seed", "created", "tours", "default_tour"}
         clash = reserved & set(values)
         if clash:
             raise ValueError(f"meta keys {sorted(clash)} are set by the writer itself")
         json.dumps(values)  # fail now, not at commit
         self._extra.update(values)
 
-    def set_tour(self, keys: Iterable[Any]) -> None:
-        """The scene's camera tour: ``TourKey`` objects or {"t", "eye", "forward", "up"} mappings.
+    def set_tour(self, keys: Iterable[Any], name: str = "scene", kind: str = "scene") -> None:
+        """The scene's default tour, the one a client that names none is sent: ``TourKey`` objects or
+        {"t", "eye", "forward", "up"} mappings, kept under ``name`` among the named tours too.
 
         Each key is validated as a ``proto.messages.TourKey`` now, so a store
         never holds a tour the server could not put in a ``Welcome``.
         """
+        self.add_tour(name, kind, keys)
+        self._tour = self._tours[name]["keys"]
+        self._default = name
+
+    def add_tour(self, name: str, kind: str, keys: Iterable[Any]) -> None:
+        """A named tour beside the default one (``kind``: ``server.scene.tour.TOUR_KINDS``), keys as ``set_tour``."""
+        if not isinstance(name, str) or not TOUR_NAME.match(name):
+            raise ValueError(f"tour name {name!r}: 1 to 128 letters, digits, '_', '.' or '-'")
+        if kind not in TOUR_KINDS:
+            raise ValueError(f"tour {name!r}: kind {kind!r} is not one of {', '.join(TOUR_KINDS)}")
         tour = [_pose_dict(k, with_t=True) for k in keys]
         for key in tour:
             TourKey.model_validate(key)
-        self._tour = tour
+        self._tours[name] = {"kind": kind, "keys": tour}
+
+    def make_tours(self, make: Callable[[SceneStore], Mapping[str, Mapping[str, Any]]],
+                   prefer: Sequence[str] = ()) -> None:
+        """Tours made at commit from the finished store, after its walkable grid: ``make(store)`` returns
+        {name: {"kind", "keys"}}; the first of ``prefer`` it makes becomes the default tour (in place of
+        ``set_tour``'s, and the start pose with it unless ``set_start`` gave one)."""
+        self._maker = (make, tuple(prefer))
+
+    def _tour_meta(self) -> dict:
+        """The meta values of the tours: ``tour`` (the default's keys), ``tours`` (name → kind, duration, keys),
+        ``default_tour`` (the default's name)."""
+        tours = {name: {"kind": t["kind"], "duration": _duration(t["keys"]), "keys": t["keys"]}
+                 for name, t in self._tours.items()}
+        return {"tour": self._tour, "tours": tours, "default_tour": self._default}
 
     def set_start(self, pose: Any) -> None:
         """Where a session starts: a ``Pose`` or {"eye", "forward", "up"} mapping (validated)."""
@@ -257,7 +290,7 @@ class SceneWriter:
             "schema_version": SCHEMA_VERSION,
             "name": self.name,
             "bounds": [self._lo.tolist(), self._hi.tolist()],
-            "tour": self._tour,
+            **self._tour_meta(),
             "start": start,
             "class_names": list(self._classes),
             "generator": self.generator,
@@ -270,6 +303,8 @@ class SceneWriter:
             self._conn.commit()
             if self.walkable:
                 self._add_walkable()
+            if self._maker is not None:
+                self._add_made_tours(start_given=self._start is not None)
             self._conn.close()
             os.chmod(self._tmp, 0o644)  # mkstemp made it private; a store is meant to be shared
             with open(self._tmp, "rb+") as f:
@@ -286,6 +321,25 @@ class SceneWriter:
         with SceneStore.open(self._tmp) as store:
             grid = walkable_grid(store)
         self._conn.execute("INSERT INTO walkable VALUES (?, ?, ?, ?, ?, ?, ?)", walkable_row(grid))
+        self._conn.commit()
+
+    def _add_made_tours(self, start_given: bool) -> None:
+        """The tours ``make_tours`` asked for, made from the store as written so far (its walkable grid read
+        back, or computed if the writer keeps none); meta's tour values rewritten to hold them."""
+        make, prefer = self._maker
+        with SceneStore.open(self._tmp) as store:
+            made = dict(make(store))
+        for name, tour in made.items():
+            self.add_tour(name, tour["kind"], tour["keys"])
+        chosen = next((name for name in prefer if name in made), None)
+        values = dict(self._tour_meta())
+        if chosen is not None:
+            self._tour, self._default = self._tours[chosen]["keys"], chosen
+            values.update(tour=self._tour, default_tour=chosen)
+            if not start_given:
+                values["start"] = {k: v for k, v in self._tour[0].items() if k != "t"}
+        self._conn.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)",
+                               [(k, json.dumps(v)) for k, v in values.items()])
         self._conn.commit()
 
     def abort(self) -> None:
@@ -350,6 +404,11 @@ def encode_levels(levels: Sequence[tuple[np.ndarray, np.ndarray]],
         encoded = [None if m is None else encode_morph(m, levels[k - 1][0].shape[0])
                    for k, m in enumerate(morphs)]
     return lo, hi, blobs, encoded
+
+
+def _duration(keys: Sequence[Mapping[str, Any]]) -> float:
+    """Seconds of one loop of a tour's keys (0 for fewer than two)."""
+    return float(keys[-1]["t"] - keys[0]["t"]) if len(keys) >= 2 else 0.0
 
 
 def _payload_counts(blob: bytes) -> tuple[int, int]:

@@ -53,6 +53,7 @@ from proto.messages import Heartbeat, TourKey, TourPlan, Welcome
 
 from .. import state as _blob
 from ..clock import ClockSync, Delivery
+from ..scene.tour import tour_for
 from ..select import solvers
 from ..select.cost import CostModel, FrameCostModel
 from ..select.cost_online import OnlineCostModel
@@ -227,6 +228,10 @@ class Session:
             raise ProtocolError("unknown_solver", f"no solver {hello.solver!r}; known: {', '.join(sorted(solvers.SOLVERS))}")
         store = self.scenes[hello.scene]
         index = store.index
+        try:
+            tour, start = tour_for(index, hello.tour)  # an unknown tour is refused before anything changes
+        except KeyError as exc:
+            raise ProtocolError("unknown_tour", exc.args[0]) from None
         # A bad ``held`` is refused (bad_held) before anything changes.
         held = None if hello.held is None else unpack_held(hello.held, index.n_representations)
         if hello.plan is not None and hello.resume is None:
@@ -252,7 +257,7 @@ class Session:
             # A denormal limit in degrees underflows to 0 in radians: keep it the least positive turn rate.
             turn = None if hello.max_turn is None else max(float(np.radians(hello.max_turn)), math.ulp(0.0))
             # Without a stated speed limit, a jump is a teleport only if it outruns the scene's own tour by 3×.
-            teleport = max(200.0, 3.0 * tour_speed(index.tour)) if hello.max_speed is None else 200.0
+            teleport = max(200.0, 3.0 * tour_speed(tour)) if hello.max_speed is None else 200.0
             self.predictor = Predictor(MotionLimits(speed=hello.max_speed, turn=turn), teleport_speed=teleport)
         if resumed:
             self.mirror.budget = budget
@@ -281,10 +286,10 @@ class Session:
                 protocol=PROTOCOL_VERSION,
                 scene=hello.scene,
                 bounds=table.bounds.tolist(),
-                start=Pose(**index.start),
+                start=Pose(**start),
                 tau=self.config.tau,
                 solver=hello.solver,
-                tour=[TourKey(**key) for key in index.tour],
+                tour=[TourKey(**key) for key in tour],
                 predict=hello.predict,
                 morph=hello.morph,
                 token=self.token,
