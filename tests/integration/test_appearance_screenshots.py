@@ -163,6 +163,7 @@ def test_the_client_command_draws_data_colours_or_object_tints(server, stores, t
         png = tmp_path / f"{colour}.png"
         done = subprocess.run([sys.executable, "-m", "walkstream", "client", server.url, "--scene", name,
                                "--duration", "4", "--width", str(W), "--height", str(H), "--target-ms", "250",
+                               "--tour", "orbit",  # from above: the roof in view (its default walk goes round it)
                                "--colour", colour, "--screenshot", str(png)], capture_output=True, text=True,
                               timeout=120)
         assert done.returncode == 0, done.stderr
