@@ -173,3 +173,23 @@ def test_the_client_command_draws_data_colours_or_object_tints(server, stores, t
     done = subprocess.run([sys.executable, "-m", "walkstream", "client", server.url, "--colour", "plaid"],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "plaid" in done.stderr
+
+
+def test_the_walk_tours_first_frame_stands_on_ground_below_the_horizon(server, stores, tmp_path) -> None:
+    """A user's city is walked by default; the walk's first frame, at eye height looking along the street,
+    shows the generated ground (never the background) everywhere below the horizon."""
+    with SceneStore.open(stores["berlin"]) as s:
+        tours = s.index.meta["tours"]
+        assert s.index.meta["default_tour"] == "walk"
+        first = tours["walk"]["keys"][0]
+    eye, forward = np.asarray(first["eye"], float), np.asarray(first["forward"], float)
+    forward /= np.linalg.norm(forward)
+    pitch = -math.asin(forward[2])  # down is positive
+    assert 0.0 <= pitch < math.radians(20.0)
+    image = _shoot(server, stores["berlin"], eye, eye + forward, tmp_path / "walk.png", sky=False)
+    background = np.round(np.asarray(BACKGROUND) * 255)
+    t = math.tan(math.radians(FOV / 2))
+    below = int(math.ceil(H / 2 - math.tan(pitch - math.radians(1.0)) / t * H / 2))  # 1° under the horizon
+    assert below < H
+    bare = np.abs(image - background).max(axis=2) <= 2
+    assert not bare[below:].any(), f"background below the horizon in rows {np.unique(np.nonzero(bare[below:])[0] + below)}"
