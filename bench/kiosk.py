@@ -2,7 +2,7 @@
 
 A kiosk plays tours of stops: the camera stands at a stop (``dwell`` seconds),
 turns towards the way on, walks there at a bounded speed along walkable ground
-(``server.scene.walkpath``), turns to the next stop's view and stands again.
+(``proto.walkpath``), turns to the next stop's view and stands again.
 Such a path is the worst case of linear extrapolation — every stop is a sudden
 halt, every turn a sudden change — and the best case of a server told the tour
 (``proto.messages.TourPlan``).
@@ -32,7 +32,7 @@ from scipy import ndimage
 from proto.messages import Navigation, TourKey, TourPlan
 from proto.tour import Tour
 from proto.walkable import WalkableGrid
-from server.scene.walkpath import largest_region, walk_path
+from proto.walkpath import largest_region, walk_path
 from server.select.navigation import Navigable
 from server.select.predict import Predictor
 

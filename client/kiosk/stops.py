@@ -1,9 +1,10 @@
 """Authored tours → camera keys in client time: paths between stops at bounded speed, a dwell at each stop.
 
 A tour is a list of stops (pose, dwell, caption); the attract playlist is its tours' stops one after the
-other, looping from the last back to the first. Between two stops the eye moves in a straight line and
-the view turns along the great circle (slerp); a leg is cut into steps of at most ``STEP_DEG`` of turn (and,
-walking on a grid, one cell of ground), and each step lasts
+other, looping from the last back to the first. Between two stops the eye flies in a straight line, or
+walks the shortest way round what blocks it on the walkable grid (``proto.walkpath``; a straight line where
+the grid knows no walk between them), while the view turns along the great circle (slerp); a leg is cut
+into steps of at most ``STEP_DEG`` of turn (and, walking on a grid, one cell of ground), and each step lasts
 
     max(|Δeye| / speed, 2·tan(δ/2) / turn)
 
@@ -28,11 +29,19 @@ import numpy as np
 from proto.messages import TourKey
 from proto.tour import Tour
 from proto.walkable import WalkableGrid
+from proto.walkpath import NoPath, along, walk_path
 
-__all__ = ["Stop", "Leg", "Segment", "Playlist", "plan_leg", "playlist_stops", "STEP_DEG"]
+__all__ = ["Stop", "Leg", "Segment", "Playlist", "plan_leg", "walk_route", "playlist_stops", "STEP_DEG", "DETOUR"]
 
 #: A leg's steps turn the view at most this much (nlerp between them then stays within 0.1 % of slerp's rate).
 STEP_DEG = 5.0
+#: A walk leg is searched for only as far as this many times the straight distance (plus ``DETOUR_M``): a
+#: search bounded so keeps a kiosk's legs cheap on a city-sized grid; beyond it the leg is a straight line.
+DETOUR = 4.0
+DETOUR_M = 50.0
+#: Walks between places a playlist remembers (its stops' legs, and the latest lead-ins), so a day's
+#: visitors do not grow it.
+ROUTES_KEPT = 256
 _EPS = 1e-9
 
 
@@ -101,21 +110,41 @@ class Leg:
     up: np.ndarray
 
 
+def walk_route(ground: WalkableGrid, a, b) -> np.ndarray | None:
+    """The waypoints ((k, 2) x, y) of the shortest walk on ``ground`` from ``a`` to ``b`` (their x, y), or None
+    where there is none within ``DETOUR`` × the straight distance (an end off the walkable ground, say)."""
+    a, b = np.asarray(a, np.float64)[:2], np.asarray(b, np.float64)[:2]
+    limit = DETOUR * float(np.linalg.norm(b - a)) + DETOUR_M
+    try:
+        return walk_path(ground, a, b, limit=limit)
+    except NoPath:
+        return None
+
+
 def plan_leg(a: tuple, b: tuple, *, speed: float, turn: float, walk: bool = False,
-             ground: WalkableGrid | None = None, eye_height: float = 1.7) -> Leg:
+             ground: WalkableGrid | None = None, eye_height: float = 1.7, route: np.ndarray | None = None) -> Leg:
     """The path from pose ``a`` to pose ``b`` (each (eye, forward, up), (3,) float) at ≤ ``speed`` m/s and
-    ≤ ``turn`` °/s; walking with a ``ground`` grid, the eye keeps ``eye_height`` above walkable cells."""
+    ≤ ``turn`` °/s; walking with a ``ground`` grid, along ``route`` (waypoints (k, 2) from a to b, as
+    ``walk_route`` gives them; default a straight line) with the eye ``eye_height`` above walkable cells."""
     ea, fa, ua = (np.asarray(v, np.float64) for v in a)
     eb, fb, ub = (np.asarray(v, np.float64) for v in b)
     fa, fb, ua, ub = _unit(fa), _unit(fb), _unit(ua), _unit(ub)
     theta = max(float(_angle(fa[None], fb[None])[0]), float(_angle(ua[None], ub[None])[0]))
-    dist = float(np.linalg.norm(eb - ea))
     n = max(1, int(np.ceil(np.degrees(theta) / STEP_DEG - 1e-9)))
-    if walk and ground is not None:
-        n = max(n, int(np.ceil(dist / ground.cell)))
-    s = np.linspace(0.0, 1.0, n + 1)
-    eye = ea + s[:, None] * (eb - ea)
-    if walk and ground is not None:
+    walking = walk and ground is not None
+    xy = np.asarray(route, np.float64) if walking and route is not None else np.stack([ea[:2], eb[:2]])
+    if walking:  # every cell of ground a sample, each corner of the route among them
+        xy = along(xy, ground.cell)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    length = float(arc[-1])
+    if length > _EPS:
+        s = np.union1d(arc / length, np.linspace(0.0, 1.0, n + 1))
+        eye = np.column_stack([np.interp(s, arc / length, xy[:, 0]), np.interp(s, arc / length, xy[:, 1]),
+                               ea[2] + s * (eb[2] - ea[2])])
+    else:  # standing (or rising straight up): the turn alone sets the steps
+        s = np.linspace(0.0, 1.0, n + 1)
+        eye = ea + s[:, None] * (eb - ea)
+    if walking:
         z = ground.height(eye[:, :2]) + eye_height
         eye[:, 2] = np.where(np.isfinite(z), z, eye[:, 2])  # off the walkable ground: the line between stops
     forward = _slerp(fa, fb, s, ua)
@@ -180,6 +209,7 @@ class Playlist:
             raise ValueError("a playlist needs at least one stop")
         self.stops = list(stops)
         self.ground, self.eye_height = ground, float(eye_height)
+        self._routes: dict[tuple, np.ndarray | None] = {}  # the walk between two places, searched once
 
     def __len__(self) -> int:
         return len(self.stops)
@@ -191,8 +221,16 @@ class Playlist:
     def leg(self, a: tuple, i: int) -> Leg:
         """From pose ``a`` to stop ``i``, as stop ``i``'s tour travels."""
         s = self.stops[i % len(self.stops)]
+        route = None
+        if s.mode == "walk" and self.ground is not None:
+            key = (tuple(np.round(np.asarray(a[0], np.float64)[:2], 3)), tuple(np.round(s.eye[:2], 3)))
+            if key not in self._routes:
+                if len(self._routes) >= ROUTES_KEPT:  # lead-ins from where visitors left the camera: drop the oldest
+                    self._routes.pop(next(iter(self._routes)))
+                self._routes[key] = walk_route(self.ground, a[0], s.eye)
+            route = self._routes[key]
         return plan_leg(a, self.pose(i), speed=s.speed, turn=s.turn, walk=s.mode == "walk", ground=self.ground,
-                        eye_height=self.eye_height)
+                        eye_height=self.eye_height, route=route)
 
     def segment(self, pose: tuple, t0: float, stop: int, *, loop: bool = True, rate: float = 1.0) -> Segment:
         """From ``pose`` at client time ``t0`` to ``stop`` and its dwell; with ``loop``, on round every stop

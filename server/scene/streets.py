@@ -14,7 +14,7 @@ density, each where it lengthens the loop least (cheapest insertion over the
 walking distances between them, Dijkstra on a coarsened copy of the grid: they
 only choose and order the stops), while the stops' shortest walks take at most
 ``STOPS_SHARE`` of the loop's length budget. The legs are shortest walks
-(``server.scene.walkpath.walk_path``, each searched only where a walk of its
+(``proto.walkpath.walk_path``, each searched only where a walk of its
 allowed length can reach) that keep ``AVOID`` off the legs before them where
 the rest of the budget pays for the detour: a loop goes round a block rather
 than out and back along one street. A lone building is walked round. The
@@ -36,11 +36,11 @@ import numpy as np
 from scipy import ndimage
 
 from proto.walkable import WalkableGrid
+from proto.walkpath import NoPath, along, largest_region, walk_distances, walk_path, walk_window
 
 from .ground import BUILDING_CLASSES
 from .index import MESH
 from .walkable import GROUND_CLASSES
-from .walkpath import NoPath, largest_region, walk_distances, walk_path
 
 __all__ = ["BLOCK", "CLEARANCES", "MAX_BLOCKS", "AVOID", "DETOUR", "STOPS_SHARE", "footprints", "dense_blocks", "open_ground",
            "StreetLoop", "street_loop", "resample_loop", "smooth_within"]
@@ -238,7 +238,7 @@ def _legs(ground: WalkableGrid, stops: np.ndarray, dist: np.ndarray, budget: flo
                 path = _walk(ground, a, b, 2 * shortest[i] + BLOCK)
             except NoPath:
                 path = walk_path(ground, a, b)
-        row, col, _ = ground.cells(_along(path, 0.5 * ground.cell))
+        row, col, _ = ground.cells(along(path, 0.5 * ground.cell))
         used[row, col] = True
         route.append(path[1:])
     return np.vstack(route)
@@ -246,32 +246,17 @@ def _legs(ground: WalkableGrid, stops: np.ndarray, dist: np.ndarray, budget: flo
 
 def _walk(ground: WalkableGrid, a: np.ndarray, b: np.ndarray, limit: float, used: np.ndarray | None = None
           ) -> np.ndarray:
-    """``walk_path`` from ``a`` to ``b`` no longer than ``limit`` (m), searched on the part of the grid such a walk
-    can reach (the box round the ellipse with foci a and b); with ``used`` ((ny, nx) bool), keeping ``AVOID``
-    m off those cells except within 2 · ``AVOID`` of either end."""
-    ny, nx = ground.shape
-    reach = max(0.0, (limit - float(np.linalg.norm(b - a))) / 2) + 2 * ground.cell
-    o = np.asarray(ground.origin)
-    c0, r0 = np.maximum(np.floor((np.minimum(a, b) - reach - o) / ground.cell).astype(np.int64), 0)
-    c1, r1 = np.minimum(np.ceil((np.maximum(a, b) + reach - o) / ground.cell).astype(np.int64), [nx, ny])
-    part = ground.ground[r0:r1, c0:c1]
-    origin = o + np.array([c0, r0]) * ground.cell
-    if used is not None:
-        near = ndimage.distance_transform_edt(~used[r0:r1, c0:c1]) * ground.cell <= AVOID
-        ys, xs = np.mgrid[r0:r1, c0:c1]
-        centres = o + (np.stack([xs, ys], axis=-1) + 0.5) * ground.cell
-        ends = np.minimum(np.linalg.norm(centres - a, axis=-1), np.linalg.norm(centres - b, axis=-1))
-        part = np.where(near & (ends > 2 * AVOID), np.nan, part)
-    return walk_path(WalkableGrid((float(origin[0]), float(origin[1])), ground.cell, part), a, b, limit=limit)
-
-
-def _along(points: np.ndarray, step: float) -> np.ndarray:
-    """Points every ``step`` (or less) along the polyline ``points`` (m, 2), its vertices among them."""
-    a, b = points[:-1], points[1:]
-    n = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) / step).astype(np.int64), 1)
-    seg = np.repeat(np.arange(len(a)), n)
-    s = (np.arange(seg.size) - np.repeat(np.cumsum(n) - n, n)) / n[seg]
-    return np.vstack([a[seg] + s[:, None] * (b - a)[seg], points[-1:]])
+    """``walk_path`` from ``a`` to ``b`` no longer than ``limit`` (m); with ``used`` ((ny, nx) bool), keeping
+    ``AVOID`` m off those cells except within 2 · ``AVOID`` of either end."""
+    if used is None:
+        return walk_path(ground, a, b, limit=limit)
+    part, (rows, cols) = walk_window(ground, a, b, limit)
+    near = ndimage.distance_transform_edt(~used[rows, cols]) * ground.cell <= AVOID
+    ys, xs = np.mgrid[rows, cols]
+    centres = np.asarray(ground.origin) + (np.stack([xs, ys], axis=-1) + 0.5) * ground.cell
+    ends = np.minimum(np.linalg.norm(centres - a, axis=-1), np.linalg.norm(centres - b, axis=-1))
+    masked = np.where(near & (ends > 2 * AVOID), np.nan, part.ground)
+    return walk_path(WalkableGrid(part.origin, ground.cell, masked), a, b, limit=limit)
 
 
 def street_loop(grid: WalkableGrid, blocks: np.ndarray, budget: float, min_length: float,

@@ -114,3 +114,39 @@ def test_the_slow_attract_loop_visits_the_same_poses_slower(playlist_stops, t0, 
     assert np.allclose(slow.arrive - t0, (fast.arrive - t0) / rate)
     with pytest.raises(ValueError, match="rate"):
         pl.segment(start, t0, 0, rate=0.0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_a_walk_leg_goes_round_a_wall_between_two_stops_and_never_through_it(seed):
+    rng = np.random.default_rng(seed)
+    ground = np.zeros((40, 40), np.float32)  # 20 × 20 m at 0.5 m
+    gap = int(rng.integers(2, 36))
+    ground[2:38, 19:21] = np.nan  # a wall across the middle, open only at the top and bottom rows
+    ground[gap:gap + 2, 19:21] = 0.0  # ... and at a door somewhere along it
+    grid = WalkableGrid((0.0, 0.0), 0.5, ground)
+    a = np.array([rng.uniform(1, 8), rng.uniform(1, 19), 1.6])
+    b = np.array([rng.uniform(12, 19), rng.uniform(1, 19), 1.6])
+    s = [Stop("w", i, p, np.array([1.0, 0, 0]), np.array([0.0, 0, 1]), 1.0, mode="walk", speed=1.5)
+         for i, p in enumerate((a, b))]
+    seg = Playlist(s, ground=grid, eye_height=1.6).segment((a, s[0].forward, s[0].up), 0.0, 0)
+    tour = Tour([{"t": float(t), "eye": e, "forward": f, "up": u} for t, e, f, u in zip(seg.t, seg.eye, seg.forward, seg.up)])
+    t = np.linspace(seg.start, seg.end, 8000, endpoint=False)  # a Tour wraps round at its very end
+    eye = tour.pose_at(t)[0]
+    assert grid.walkable(eye[:, :2]).all(), "the walk crossed the wall"
+    crossed = np.flatnonzero(np.diff(np.sign(eye[:, 0] - 10.0)) != 0)
+    assert crossed.size, "the loop never went from one stop to the other"
+    speed = np.linalg.norm(np.diff(eye, axis=0), axis=1) / np.diff(t)
+    assert speed.max() <= 1.5 * 1.01
+
+
+def test_a_walk_leg_without_a_walk_between_its_stops_is_the_straight_line():
+    ground = np.zeros((20, 20), np.float32)
+    ground[:, 9:11] = np.nan  # a wall with no door: two regions
+    grid = WalkableGrid((0.0, 0.0), 0.5, ground)
+    a, b = np.array([1.0, 5.0, 1.6]), np.array([9.0, 5.0, 1.6])
+    leg = Playlist([Stop("w", 0, a, np.array([1.0, 0, 0]), np.array([0.0, 0, 1]), 1.0, mode="walk"),
+                    Stop("w", 1, b, np.array([1.0, 0, 0]), np.array([0.0, 0, 1]), 1.0, mode="walk")],
+                   ground=grid, eye_height=1.6).leg((a, np.array([1.0, 0, 0]), np.array([0.0, 0, 1])), 1)
+    np.testing.assert_allclose(leg.eye[:, 1], 5.0)
+    assert leg.eye[0, 0] == pytest.approx(1.0) and leg.eye[-1, 0] == pytest.approx(9.0)

@@ -187,7 +187,7 @@ def test_every_walkable_cell_is_finite_in_range_and_never_inside_an_obstacle(tmp
 
 def test_a_walk_path_goes_round_a_wall_and_never_through_it():
     from proto.walkable import WalkableGrid
-    from server.scene.walkpath import NoPath, largest_region, walk_path
+    from proto.walkpath import NoPath, largest_region, walk_path
 
     ground = np.zeros((40, 40), np.float32)
     ground[:30, 20] = np.nan  # a wall from y = 0 to 15 at x = 10

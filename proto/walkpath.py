@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from proto.walkable import WalkableGrid
 
-__all__ = ["largest_region", "walk_path", "walk_distances", "NoPath"]
+__all__ = ["largest_region", "walk_path", "walk_distances", "walk_window", "along", "NoPath"]
 
 
 class NoPath(ValueError):
@@ -53,10 +53,18 @@ def _graph(open_: np.ndarray, cell: float):
 
 
 def _line_open(grid: WalkableGrid, a: np.ndarray, b: np.ndarray) -> bool:
-    """The straight line a → b (2,) stays on walkable ground (sampled every quarter cell)."""
-    n = max(2, int(np.ceil(np.linalg.norm(b - a) / (0.25 * grid.cell))) + 1)
-    s = np.linspace(0.0, 1.0, n)[:, None]
-    return bool(grid.walkable(a + s * (b - a)).all())
+    """The straight line a → b (2,) stays on walkable ground: every cell it passes through is walkable (the
+    line's crossings of the grid lines cut it into pieces, one per cell, each tested at its middle)."""
+    o, d = np.asarray(grid.origin, np.float64), b - a
+    cuts = [np.array([0.0, 1.0])]
+    for k in (0, 1):
+        if abs(d[k]) > 1e-12:
+            lo, hi = sorted(((a[k] - o[k]) / grid.cell, (b[k] - o[k]) / grid.cell))
+            lines = np.arange(np.ceil(lo), np.floor(hi) + 1)
+            cuts.append((o[k] + lines * grid.cell - a[k]) / d[k])
+    t = np.unique(np.clip(np.concatenate(cuts), 0.0, 1.0))
+    mid = (t[:-1] + t[1:]) / 2 if len(t) > 1 else np.array([0.0])
+    return bool(grid.walkable(a + mid[:, None] * d).all() and grid.walkable(np.stack([a, b])).all())
 
 
 def walk_distances(grid: WalkableGrid, points, limit: float = np.inf) -> np.ndarray:
@@ -82,8 +90,11 @@ def walk_distances(grid: WalkableGrid, points, limit: float = np.inf) -> np.ndar
 def walk_path(grid: WalkableGrid, start, goal, limit: float = np.inf) -> np.ndarray:
     """The shortest walk from ``start`` to ``goal`` ((2,) x, y) on the grid, as waypoints (k, 2) float64 from
     start to goal, each straight leg on walkable ground; ``NoPath`` if there is none (none within ``limit``
-    m: the search stops there)."""
+    m). A finite ``limit`` searches only the box round the ellipse with foci ``start`` and ``goal`` that such a
+    walk cannot leave, which keeps a short walk on a large grid cheap."""
     start, goal = np.asarray(start, np.float64)[:2], np.asarray(goal, np.float64)[:2]
+    if np.isfinite(limit):
+        grid, _ = walk_window(grid, start, goal, limit)
     open_ = np.isfinite(grid.ground)
     (r0, r1), (c0, c1), inside = grid.cells(np.stack([start, goal]))
     if not inside.all() or not open_[r0, c0] or not open_[r1, c1]:
@@ -108,3 +119,29 @@ def walk_path(grid: WalkableGrid, start, goal, limit: float = np.inf) -> np.ndar
             j = max(i + 1, i + (j - i) // 2)
         keep.append(j)
     return points[keep]
+
+
+def walk_window(grid: WalkableGrid, a, b, limit: float) -> tuple[WalkableGrid, tuple[slice, slice]]:
+    """The part of ``grid`` a walk from ``a`` to ``b`` no longer than ``limit`` can reach (the box round the
+    ellipse with foci a and b, a cell wider each side), as a grid of its own, and its (rows, cols) slices
+    into ``grid``."""
+    a, b = np.asarray(a, np.float64)[:2], np.asarray(b, np.float64)[:2]
+    ny, nx = grid.shape
+    reach = max(0.0, (limit - float(np.linalg.norm(b - a))) / 2) + 2 * grid.cell
+    o = np.asarray(grid.origin, np.float64)
+    c0, r0 = np.maximum(np.floor((np.minimum(a, b) - reach - o) / grid.cell).astype(np.int64), 0)
+    c1, r1 = np.minimum(np.ceil((np.maximum(a, b) + reach - o) / grid.cell).astype(np.int64), [nx, ny])
+    c1, r1 = max(int(c1), int(c0) + 1), max(int(r1), int(r0) + 1)
+    origin = o + np.array([c0, r0]) * grid.cell
+    rows, cols = slice(int(r0), int(r1)), slice(int(c0), int(c1))
+    return WalkableGrid((float(origin[0]), float(origin[1])), grid.cell, grid.ground[rows, cols]), (rows, cols)
+
+
+def along(points: np.ndarray, step: float) -> np.ndarray:
+    """Points every ``step`` (or less) along the polyline ``points`` (m, d), its vertices among them."""
+    points = np.asarray(points, np.float64)
+    a, b = points[:-1], points[1:]
+    n = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) / step).astype(np.int64), 1)
+    seg = np.repeat(np.arange(len(a)), n)
+    s = (np.arange(seg.size) - np.repeat(np.cumsum(n) - n, n)) / n[seg]
+    return np.vstack([a[seg] + s[:, None] * (b - a)[seg], points[-1:]])
