@@ -28,6 +28,8 @@ from proto.errors import ProtocolError
 from proto.messages import DEFAULT_SUN, MAX_PLAN_KEYS, Error, TourPlan, Welcome
 from proto.walkable import WalkableGrid, decode as decode_walkable
 
+from ..gpu_memory import gpu_memory
+
 from .attract import ATTRACT, COUNTDOWN, AttractMachine, reported_state
 from .config import KioskConfig
 from .heartbeat import Meter, rss_bytes
@@ -83,6 +85,8 @@ class Director:
         self._plan: list = []  # the active segment's TourKeys; sent in parts
         self._plan_next = 0  # first key not yet sent
         self._reconnects = 0
+        self.gpu_memory: int | None = None
+        """GPU memory in use at the last heartbeat (bytes), None where the driver does not tell."""
         self._pose: tuple | None = None
         self._dwelling = False  # the camera is at the current stop (its caption shows)
 
@@ -162,9 +166,10 @@ class Director:
                 self._resend(t)
         if self.meter.due(t) and loop is not None and self.playlist is not None:
             stop = self.playlist.stops[self.stop]
+            self.gpu_memory = gpu_memory(loop.renderer.ctx.extensions)  # the frame loop's thread: its context
             self._out.append(self.meter.beat(
                 t, state=self.state, rss=rss_bytes(), cache_bytes=loop.cache.held_bytes,
-                reconnects=len(loop.run.reconnects), tour=stop.tour, stop=stop.index))
+                reconnects=len(loop.run.reconnects), tour=stop.tour, stop=stop.index, gpu_memory=self.gpu_memory))
         out, self._out = self._out, []
         return out
 

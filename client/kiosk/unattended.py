@@ -147,7 +147,8 @@ class StatusFile:
             "deltas": self.deltas_before + (run.deltas_received if run is not None else 0),
             "reconnects": len(run.reconnects) if run is not None else 0, "connected": director.link_up,
             "state": director.state, "stop": director.stop, "eye": [round(float(v), 3) for v in eye],
-            "cache_bytes": int(loop.cache.held_bytes) if loop is not None else 0, "gpu_memory": None,
+            "cache_bytes": int(loop.cache.held_bytes) if loop is not None else 0,
+            "gpu_memory": getattr(director, "gpu_memory", None),
             "out_of_bounds": self.out_of_bounds,
         }
         tmp = self.path.with_name(self.path.name + ".tmp")
