@@ -119,6 +119,7 @@ class KioskSection(_Strict):
                          Field(min_length=1, max_length=32)] = ["en"]
     font: str = ""
     caption_px: Annotated[int, Field(ge=12, le=300)] = 40
+    sky: bool = True
     heartbeat_s: Annotated[float, Field(ge=0.5, le=600.0)] = 5.0
     cache_mb: Annotated[int, Field(ge=1, le=1 << 20)] = 256
     log_file: str = ""

@@ -24,6 +24,7 @@ target_ms = 50.0                      # the frame time the server selects for
 languages = ["en", "de"]              # captions' languages; the first is the default (restored when idle)
 font = ""                             # a TTF file; "" = DejaVu Sans (Debian: fonts-dejavu-core)
 caption_px = 40                       # caption type size in pixels: legible at arm's length
+sky = true                            # the sky behind the scene; false = one plain colour
 heartbeat_s = 5.0                     # how often the kiosk reports its health to the server
 cache_mb = 256                        # the client cache's byte budget
 log_file = ""                         # "" = stderr; else a file rotated at log_max_mb, log_backups kept

@@ -42,7 +42,7 @@ from .config import KioskConfig
 from .director import Director
 from .overlay import OverlayState
 
-__all__ = ["run_kiosk", "KioskHooks", "KioskRun", "Shot", "PATIENCE", "CLIENT_NAME"]
+__all__ = ["run_kiosk", "kiosk_renderer", "KioskHooks", "KioskRun", "Shot", "PATIENCE", "CLIENT_NAME"]
 
 log = logging.getLogger("walkstream.kiosk")
 
@@ -166,7 +166,7 @@ def run_kiosk(
     renderer: Renderer | None = None
     try:
         size = (view.width, view.height) if view is not None else (k.viewport[0], k.viewport[1])
-        renderer = Renderer(*size, ctx=view.ctx) if view is not None else Renderer(*size, backend="egl")
+        renderer = kiosk_renderer(size, view, k.sky)
         start = time.monotonic()  # the client clock: every t is seconds since here
         end = start + duration
 
@@ -225,7 +225,7 @@ def run_kiosk(
                 log.warning("session ended: %s; dialling a new one", run.close_reason)
                 director.release()
                 renderer.release()
-                renderer = Renderer(*size, ctx=view.ctx) if view is not None else Renderer(*size, backend="egl")
+                renderer = kiosk_renderer(size, view, k.sky)
                 director.attach(renderer)
         result.states = list(director.states)
         return result
@@ -280,6 +280,15 @@ def _dial(urls: list[str], client_id: str, hello: Hello, timeout: float, end: fl
                 break
             time.sleep(min(0.1, max(0.0, wait_until - time.monotonic())))  # pacing the placeholder, not a sync
     return None
+
+
+def kiosk_renderer(size: tuple[int, int], view, sky: bool) -> Renderer:
+    """The kiosk's renderer: in the window's context, or offscreen (headless); the sky behind the scene as the
+    walkstream client draws it, unless the config turns it off."""
+    renderer = Renderer(*size, ctx=view.ctx) if view is not None else Renderer(*size, backend="egl")
+    if sky:
+        renderer.enable_sky()
+    return renderer
 
 
 def _placeholder(renderer: Renderer, director: Director, view) -> None:

@@ -26,7 +26,8 @@ from client.kiosk.config import DEFAULT_FONT, load_config
 from client.kiosk.example import EXAMPLE
 from client.kiosk.overlay import Overlay, OverlayState
 from client.kiosk.run import run_kiosk
-from client.renderer import BACKGROUND
+
+from .sky_pixels import scene_share
 
 ROOT = Path(__file__).resolve().parents[2]
 SIZE = (320, 180)
@@ -57,12 +58,6 @@ def _config_text(url: str, *, fullscreen: bool = False, idle: float = 4.0, count
 def server(auditorium_store):
     with ServerProcess([auditorium_store]) as srv:
         yield srv
-
-
-def _drawn(image: np.ndarray) -> float:
-    """The share of pixels that are not the empty sky."""
-    sky = np.round(np.asarray(BACKGROUND) * 255)
-    return float((np.abs(image.astype(np.int16) - sky).max(axis=2) > 3).mean())
 
 
 def _read(path: Path) -> np.ndarray:
@@ -133,7 +128,7 @@ def test_a_kiosk_plays_its_loop_hands_over_to_a_visitor_comes_back_and_outlives_
         image = _read(shot.path)
         mask = _glyphs(OverlayState(caption=shot.caption, language="en"), below=layout.caption_bottom)
         assert mask.sum() > 100 and np.all(image[mask] == 255), "the caption's glyphs are not in the frame"
-        assert _drawn(image) > 0.3  # and the scene is behind it
+        assert scene_share(image) > 0.3  # and the scene is behind it
 
     # The visitor: German, flown to the piano with its caption; then idle → countdown → attract, on time.
     visitor = [f for f in frames if script["touched"] <= f[0] < script["back"]]
@@ -158,7 +153,7 @@ def test_a_kiosk_plays_its_loop_hands_over_to_a_visitor_comes_back_and_outlives_
     mark = _glyphs(OverlayState(reconnecting=True, buttons=False), below=layout.margin + CAPTION_PX)
     for shot in dark:
         image = _read(shot.path)
-        assert image.max() > 0 and _drawn(image) > 0.3, f"{shot.path.name}: a blank frame during the outage"
+        assert image.max() > 0 and scene_share(image) > 0.3, f"{shot.path.name}: a blank frame during the outage"
         assert np.all(image[mark] == 255), f"{shot.path.name}: no reconnecting mark"
 
 
@@ -211,8 +206,8 @@ def test_the_example_config_runs_fullscreen_in_a_window(small_display, server, t
     caption = _glyphs(OverlayState(caption="The auditorium: 440 chairs facing the stage"),
                       below=Overlay(*SIZE, font=DEFAULT_FONT, caption_px=CAPTION_PX).layout.caption_bottom)
     with_caption = [im for im in images if np.all(im[caption] == 255)]
-    assert with_caption and max(_drawn(im) for im in with_caption) > 0.3
-    assert all(_drawn(im) > 0.3 for im in images[3:])  # and the scene on every later frame
+    assert with_caption and max(scene_share(im) for im in with_caption) > 0.3
+    assert all(scene_share(im) > 0.3 for im in images[3:])  # and the scene on every later frame
 
 
 def test_the_command_line(tmp_path):

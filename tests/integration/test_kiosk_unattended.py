@@ -24,9 +24,9 @@ from bench.demo import ServerProcess
 from bench.kiosk_config import soak_config
 from bench.netem import DelayProxy
 from bench.soak import SoakPlan, run
-from client.renderer import BACKGROUND
 
 from .test_fleet_browser import browser  # noqa: F401 - the fleet page's chromium fixture
+from .sky_pixels import scene_share
 
 ROOT = Path(__file__).resolve().parents[2]
 HEARTBEAT_S = 1.0
@@ -49,12 +49,10 @@ def _kiosk_row(server: ServerProcess, kiosk: str) -> dict | None:
 
 
 def _drawn(path: Path) -> float:
-    """The share of a screenshot's pixels that are not the empty sky."""
+    """The share of a screenshot's pixels that show the scene (not the sky)."""
     from PIL import Image
 
-    image = np.asarray(Image.open(path).convert("RGB")).astype(np.int16)
-    sky = np.round(np.asarray(BACKGROUND) * 255)
-    return float((np.abs(image - sky).max(axis=2) > 3).mean())
+    return scene_share(np.asarray(Image.open(path).convert("RGB")))
 
 
 def _start_kiosk(config: Path, tmp_path: Path, *extra: str) -> subprocess.Popen:
