@@ -196,13 +196,7 @@ def bench_benefit(
     (FLIP against the finest level) the real renderer draws; picks the simplest within 10 % of the best."""
     from bench.benefit import run as run_benefit
 
-    if not stores:
-        from bench.stores import cached_auditorium, cached_denhaag
-
-        stores = [cached_auditorium(as_json), cached_denhaag(quiet=as_json)]
-    for p in stores:
-        if not p.exists():
-            raise typer.BadParameter(f"no such store: {p}", param_hint="--store")
+    stores = _city_stores(stores, as_json, auditorium_first=True)
     bar, tick = progress_bar("bench benefit", quiet=as_json)
     with bar:
         result = run_benefit(list(stores), objects=objects, progress=tick)
@@ -210,6 +204,19 @@ def bench_benefit(
         typer.echo(line, err=as_json)
     if as_json:
         print(json.dumps({k: v for k, v in result.items() if k != "lines"}))
+
+
+def _city_stores(stores: Optional[list[Path]], quiet: bool, *, auditorium_first: bool) -> list[Path]:
+    """The ``--store`` s given, each checked to exist, else the cached auditorium and Den Haag stores."""
+    if not stores:
+        from bench.stores import cached_auditorium, cached_denhaag
+
+        pair = [cached_auditorium(quiet), cached_denhaag(quiet=quiet)]
+        return pair if auditorium_first else pair[::-1]
+    for p in stores:
+        if not p.exists():
+            raise typer.BadParameter(f"no such store: {p}", param_hint="--store")
+    return list(stores)
 
 
 @bench_app.command("encoding")
@@ -223,13 +230,7 @@ def bench_encoding(
     reference measured in the same run."""
     from bench.encoding import run as run_encoding
 
-    if not stores:
-        from bench.stores import cached_auditorium, cached_denhaag
-
-        stores = [cached_denhaag(quiet=as_json), cached_auditorium(as_json)]
-    for p in stores:
-        if not p.exists():
-            raise typer.BadParameter(f"no such store: {p}", param_hint="--store")
+    stores = _city_stores(stores, as_json, auditorium_first=False)
     bar, tick = progress_bar("bench encoding", quiet=as_json)
     with bar:
         result = run_encoding(list(stores), progress=tick, keys=keys)

@@ -11,7 +11,7 @@ import numpy as np
 
 from proto.tour import Tour, field as _field, perpendicular as _perpendicular, unit as _unit
 
-__all__ = ["FlyController", "WalkController", "Navigator", "KEYS", "WORLD_UP"]
+__all__ = ["Driving", "FlyController", "WalkController", "Navigator", "KEYS", "WORLD_UP"]
 
 _EPS = 1e-9
 
@@ -247,7 +247,33 @@ class WalkController(_Controller):
         self.eye[2] = self.height
 
 
-class Navigator:
+class Driving:
+    """What a navigator passes on to the controller it drives (``self.controller``): input and poses."""
+
+    controller: _Controller
+
+    def key(self, name: str, pressed: bool) -> bool:
+        return self.controller.key(name, pressed)
+
+    def look(self, dx: float, dy: float) -> None:
+        self.controller.look(dx, dy)
+
+    def clear_input(self) -> None:
+        self.controller.clear_input()
+
+    def pose_at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.controller.pose_at(t)
+
+    @property
+    def pose(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.controller.pose
+
+    @property
+    def t(self) -> float | None:
+        return self.controller.t
+
+
+class Navigator(Driving):
     """The window's camera: a fly or a walk controller, switched by ``toggle`` (Tab) where the camera is.
 
     Speeds are m/s (Shift multiplies by ``fast``); ``max_speed`` and ``max_turn``
@@ -299,22 +325,3 @@ class Navigator:
         new.held, new._t = set(old.held), old._t  # a key held through the switch keeps moving
         self.controller = new
 
-    def key(self, name: str, pressed: bool) -> bool:
-        return self.controller.key(name, pressed)
-
-    def look(self, dx: float, dy: float) -> None:
-        self.controller.look(dx, dy)
-
-    def clear_input(self) -> None:
-        self.controller.clear_input()
-
-    def pose_at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self.controller.pose_at(t)
-
-    @property
-    def pose(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self.controller.pose
-
-    @property
-    def t(self) -> float | None:
-        return self.controller.t

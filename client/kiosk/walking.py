@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from proto.walkable import WalkableGrid
-from ..navigation import FlyController, WalkController
+from ..navigation import Driving, FlyController, WalkController
 
 __all__ = ["ConstrainedWalk", "BoundedFly", "KioskNavigator", "MAX_STEP"]
 
@@ -112,7 +112,7 @@ class ConstrainedWalk(WalkController):
         self.height = float(self.eye[2])
 
 
-class KioskNavigator:
+class KioskNavigator(Driving):
     """The visitor's camera in the config's mode ("walk" or "fly"), placed where the attract loop left it.
 
     Speeds and turns are the config's caps (announced in the hello); Shift does not speed up.
@@ -137,19 +137,3 @@ class KioskNavigator:
         """Put the camera at ``start`` (a pose) at client time ``t``; held keys and pending turns are dropped."""
         self.controller = self._make(start)
         self.controller._t = t
-
-    def key(self, name: str, pressed: bool) -> bool:
-        return self.controller.key(name, pressed)
-
-    def look(self, dx: float, dy: float) -> None:
-        self.controller.look(dx, dy)
-
-    def clear_input(self) -> None:
-        self.controller.clear_input()
-
-    def pose_at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self.controller.pose_at(t)
-
-    @property
-    def pose(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self.controller.pose
