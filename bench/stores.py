@@ -1,9 +1,10 @@
 """The scene stores the benchmarks and evaluations share: cached named stores and scene resolution.
 
 A named scene is built once into ``DEFAULT_CACHE`` under a name that carries the store's
-``SCHEMA_VERSION`` (and the generator's ``VERSION``, where a generator has one), so a
-change to either builds anew instead of reading a stale store; a progress bar on stderr
-follows a build. ``resolve_scene`` turns what a user typed (a store, a named scene or a
+``SCHEMA_VERSION``, the builds' ``BUILD_VERSION`` (``server.scene.catalog``) and the
+generator's ``VERSION``, where a generator has one (``cache_key``), so a change to any of
+them builds anew instead of reading a stale store; old files are left where they are.
+A progress bar on stderr follows a build. ``resolve_scene`` turns what a user typed (a store, a named scene or a
 source file) into a store.
 """
 
@@ -15,7 +16,7 @@ from typing import Callable
 
 from server.cli import progress_bar
 
-__all__ = ["DEFAULT_CACHE", "demo_store", "build_demo", "cached_denhaag", "cached_auditorium", "scene_version",
+__all__ = ["DEFAULT_CACHE", "cache_key", "demo_store", "build_demo", "cached_denhaag", "cached_auditorium", "scene_version",
            "resolve_scene"]
 
 Progress = Callable[[str, int, int], None]
@@ -24,11 +25,18 @@ DEFAULT_CACHE = Path.home() / ".cache" / "walkstream"
 SOURCE_SUFFIXES = (".city.json", ".json", ".gltf", ".glb", ".obj", ".ply", ".dem", ".npz", ".gml")
 
 
-def demo_store(objects: int, seed: int) -> Path:
-    """Where the demo scene of ``objects`` objects and ``seed`` is cached."""
+def cache_key(stem: str) -> str:
+    """The cached store's file name for ``stem`` ("denhaag-s0", a user file's name and digest):
+    ``{stem}-v{SCHEMA_VERSION}-b{BUILD_VERSION}.db``, the one place every key is made."""
+    from server.scene.catalog import BUILD_VERSION
     from server.scene.store import SCHEMA_VERSION
 
-    return DEFAULT_CACHE / f"demo-n{objects}-s{seed}-v{SCHEMA_VERSION}.db"
+    return f"{stem}-v{SCHEMA_VERSION}-b{BUILD_VERSION}.db"
+
+
+def demo_store(objects: int, seed: int) -> Path:
+    """Where the demo scene of ``objects`` objects and ``seed`` is cached."""
+    return DEFAULT_CACHE / cache_key(f"demo-n{objects}-s{seed}")
 
 
 def build_demo(path: Path, objects: int, seed: int, quiet: bool = False) -> dict:
@@ -44,10 +52,9 @@ def build_demo(path: Path, objects: int, seed: int, quiet: bool = False) -> dict
 def cached_denhaag(size: int | None = None, seed: int = 0, quiet: bool = False) -> Path:
     """The Den Haag store the benchmarks use, under ``DEFAULT_CACHE``; built (progress bar on stderr) if missing."""
     from server.scene.catalog import build_named
-    from server.scene.store import SCHEMA_VERSION
 
     tag = "" if size is None else f"-n{size}"
-    path = DEFAULT_CACHE / f"denhaag{tag}-s{seed}-v{SCHEMA_VERSION}.db"
+    path = DEFAULT_CACHE / cache_key(f"denhaag{tag}-s{seed}")
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         bar, tick = progress_bar("building denhaag", quiet)
@@ -59,9 +66,8 @@ def cached_denhaag(size: int | None = None, seed: int = 0, quiet: bool = False) 
 def cached_auditorium(quiet: bool) -> Path:
     """The auditorium store the benchmarks share, under ``DEFAULT_CACHE``; built (progress bar) if missing."""
     from server.scene.catalog import build_named
-    from server.scene.store import SCHEMA_VERSION
 
-    store = DEFAULT_CACHE / f"auditorium-s0-v{SCHEMA_VERSION}{scene_version('auditorium')}.db"
+    store = DEFAULT_CACHE / cache_key(f"auditorium-s0{scene_version('auditorium')}")
     if not store.exists():
         store.parent.mkdir(parents=True, exist_ok=True)
         bar, tick = progress_bar("building auditorium", quiet)
@@ -87,14 +93,14 @@ def resolve_scene(arg: str | Path, *, seed: int = 0, cache_dir: str | Path | Non
     """(store path, scene name) for what a user typed: a store, a named scene or a source file.
 
     A ``.db`` file is opened for its name. A named scene (demo, auditorium, denhaag, sthelens, megacity) is
-    built once into ``cache_dir/{name}-s{seed}-v{SCHEMA_VERSION}[-g{generator VERSION}].db``. A user's CityJSON, glTF/GLB, OBJ,
-    PLY, USGS DEM, .npz or CityGML file is built once (with a generated orbit tour) into
-    ``cache_dir/{stem}-{sha256[:16]}-v{SCHEMA_VERSION}.db``, keyed by its content, so an edited file builds
-    anew. ``cache_dir`` defaults to ~/.cache/walkstream. ValueError says what was wrong with anything else.
+    built once into ``cache_dir/{name}-s{seed}[-g{generator VERSION}]-v{SCHEMA_VERSION}-b{BUILD_VERSION}.db``.
+    A user's CityJSON, glTF/GLB, OBJ, PLY, USGS DEM, .npz or CityGML file is built once (with generated
+    tours) into ``cache_dir/{stem}-{sha256[:16]}-v{SCHEMA_VERSION}-b{BUILD_VERSION}.db``, keyed by its
+    content, so an edited file builds anew (``cache_key``). ``cache_dir`` defaults to ~/.cache/walkstream. ValueError says what was wrong with anything else.
     """
     from server.scene.catalog import SCENES, build_named, build_path, is_named
     from server.scene.source import SourceError
-    from server.scene.store import SCHEMA_VERSION, SceneStore, StoreError
+    from server.scene.store import SceneStore, StoreError
 
     cache = Path(cache_dir) if cache_dir is not None else DEFAULT_CACHE
     text = str(arg)
@@ -113,7 +119,7 @@ def resolve_scene(arg: str | Path, *, seed: int = 0, cache_dir: str | Path | Non
             raise ValueError(f"no such scene store: {path}")
         return path, name_of(path)
     if is_named(text) and not path.exists():
-        target = cache / f"{text}-s{seed}-v{SCHEMA_VERSION}{scene_version(text)}.db"
+        target = cache / cache_key(f"{text}-s{seed}{scene_version(text)}")
         if not target.exists():
             target.parent.mkdir(parents=True, exist_ok=True)
             build_named(text, target, seed=seed, progress=progress)
@@ -122,7 +128,7 @@ def resolve_scene(arg: str | Path, *, seed: int = 0, cache_dir: str | Path | Non
         suffix = next(x for x in SOURCE_SUFFIXES if path.name.lower().endswith(x))
         digest = _file_digest(path, suffix)
         stem = path.name.split(".")[0] or "scene"
-        target = cache / f"{stem}-{digest[:16]}-v{SCHEMA_VERSION}.db"
+        target = cache / cache_key(f"{stem}-{digest[:16]}")
         if not target.exists():
             target.parent.mkdir(parents=True, exist_ok=True)
             try:

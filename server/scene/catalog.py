@@ -31,7 +31,14 @@ from .builder import BuildOptions, Progress, build_store
 from .data import data_file
 from .source import HeightGrid, SourceError, SourceScene, TreeInstances, TreeModel
 
-__all__ = ["SCENES", "build_named", "build_path", "is_named", "load_tree_model", "with_tree_models"]
+__all__ = ["BUILD_VERSION", "SCENES", "build_named", "build_path", "is_named", "load_tree_model", "with_tree_models"]
+
+#: The version of what a build puts in a store. Bump when a build makes something a cached store
+#: lacks — a new tour, colours an importer now reads — though the schema that holds it stays the
+#: same: every cache key carries it (``bench.stores.cache_key``), so a store cached by an older build
+#: is built anew instead of being reused. 2: the walk and flyover tours, CityGML appearances and
+#: textures as colours.
+BUILD_VERSION = 2
 
 
 @dataclass(frozen=True)

@@ -246,9 +246,39 @@ def test_resolve_scene_builds_a_named_scene_once_into_the_cache(tmp_path, monkey
 
     monkeypatch.setattr(catalog, "build_named", small)
     path, name = resolve_scene("demo", seed=4, cache_dir=tmp_path)
-    assert path == tmp_path / f"demo-s4-v{SCHEMA_VERSION}.db" and path.is_file() and name == "demo"
+    assert path == tmp_path / f"demo-s4-v{SCHEMA_VERSION}-b{catalog.BUILD_VERSION}.db" and path.is_file()
+    assert name == "demo"
     assert resolve_scene("demo", seed=4, cache_dir=tmp_path) == (path, "demo")
     assert calls == [("demo", 4)]  # the second time it was cached
+
+
+def test_a_store_cached_by_an_older_build_is_built_anew_and_left_in_place(tmp_path, monkeypatch):
+    import server.scene.catalog as catalog
+    from server.scene.demo import build_demo
+
+    calls = []
+
+    def small(name, path, *, seed=0, progress=None, **_):
+        calls.append(name)
+        return build_demo(path, objects=6, seed=seed)
+
+    monkeypatch.setattr(catalog, "build_named", small)
+    monkeypatch.setattr(catalog, "BUILD_VERSION", catalog.BUILD_VERSION - 1)
+    old, _ = resolve_scene("demo", seed=1, cache_dir=tmp_path)
+    monkeypatch.setattr(catalog, "BUILD_VERSION", catalog.BUILD_VERSION + 1)  # a build that makes more
+    new, name = resolve_scene("demo", seed=1, cache_dir=tmp_path)
+    assert new != old and new.is_file() and name == "demo"
+    assert calls == ["demo", "demo"]  # the old store was not reused...
+    assert old.is_file()  # ...nor deleted
+
+    source = tmp_path / "box.obj"
+    import trimesh
+
+    trimesh.creation.box().export(source)
+    first, _ = resolve_scene(source, cache_dir=tmp_path / "files")
+    monkeypatch.setattr(catalog, "BUILD_VERSION", catalog.BUILD_VERSION + 1)
+    second, _ = resolve_scene(source, cache_dir=tmp_path / "files")
+    assert second != first and first.is_file() and second.is_file()
 
 
 @pytest.mark.parametrize("suffix", ["obj", "ply"])

@@ -21,11 +21,15 @@ building's id. Polygons are read once, where they are defined (solids that
 out: they are virtual faces closing a volume, not something one sees. Each
 polygon takes the colour of the semantic surface it bounds (``RoofSurface``,
 ``WallSurface``, ``GroundSurface``, ``Window``, ``Door``…, ``server.scene.palette``),
-its object's class colour where it bounds none. CityGML appearances
-(``app:``) are not read.
+its object's class colour where it bounds none — unless an appearance of the
+file's first theme targets it: then its texture's mean colour or its
+``X3DMaterial`` 's ``diffuseColor`` (``server.scene.importers.citygml_appearance``
+says which wins, and why).
 
 The file is read with ``iterparse`` and each top-level city object is
-cleared when done, so memory stays at one object. Elements are matched by
+cleared when done, so memory stays at one object; a file with appearances
+is read twice, first for its CityModel-level ones, which may follow the
+objects they target. Elements are matched by
 local name, so CityGML 1.0 and 2.0 namespaces both work.
 
 Polygons (with holes) are triangulated by
@@ -44,6 +48,8 @@ import numpy as np
 from server.scene.palette import class_colour, surface_colour
 from server.scene.scans import TREE_MODEL_ATTRIBUTE
 from server.scene.source import Mesh, SourceError, SourceObject, SourceScene, TreeInstances, TreeModel
+
+from .citygml_appearance import file_appearances
 
 __all__ = ["load_citygml"]
 
@@ -136,30 +142,38 @@ def _mesh(polys: list[list[np.ndarray]], tri, colours: list | None = None, cls: 
     return Mesh(pos, f[keep], face_colours=poly_colour[owner[keep]])
 
 
-def _polygons(elem: ET.Element, path, owner: str, stop=(), colours: list | None = None) -> list[list[np.ndarray]]:
+def _polygons(elem: ET.Element, path, owner: str, stop=(), colours: list | None = None,
+              ids: list | None = None) -> list[list[np.ndarray]]:
     """Every gml:Polygon below ``elem`` as rings, not descending into ``stop`` elements or ClosureSurfaces.
 
     colours : when given, receives each polygon's semantic surface colour (None where it bounds none)
+    ids     : when given, receives each polygon's gml:ids an appearance may target: its own, its rings',
+              then those of the elements around it below ``elem``, nearest first
     """
     out = []
 
-    def walk(e, colour):
+    def walk(e, colour, around):
         for c in e:
             name = _local(c.tag)
             if name in stop or name == "ClosureSurface":
                 continue
             if name == "Polygon":
                 where = f"{owner}, polygon {c.get(_GML_ID) or len(out) + 1}"
-                rings = [_ring(r, path, where) for b in c if _local(b.tag) in ("exterior", "interior")
-                         for r in b if _local(r.tag) == "LinearRing"]
+                boundary = [r for b in c if _local(b.tag) in ("exterior", "interior")
+                            for r in b if _local(r.tag) == "LinearRing"]
+                rings = [_ring(r, path, where) for r in boundary]
                 if rings:
                     out.append(rings)
                     if colours is not None:
                         colours.append(colour)
+                    if ids is not None:
+                        own = [x for x in (c.get(_GML_ID), *(r.get(_GML_ID) for r in boundary)) if x]
+                        ids.append(own + around)
             else:
-                walk(c, surface_colour(name) or colour)
+                gid = c.get(_GML_ID)
+                walk(c, surface_colour(name) or colour, [gid, *around] if ids is not None and gid else around)
 
-    walk(elem, None)
+    walk(elem, None, [])
     return out
 
 
@@ -189,6 +203,7 @@ def load_citygml(path) -> SourceScene:
     if path.stat().st_size == 0:
         raise SourceError(f"{path}: empty file")
     tri = _triangulator()
+    appearances = file_appearances(path)
     protos: dict[str, list] = {}  # gml:id → polygons
     proto_order: list[str] = []
     trees = []  # (name, href, matrix, height, crown, tree_model file)
@@ -209,16 +224,20 @@ def load_citygml(path) -> SourceScene:
                 e.clear()
             elif name == "Building":
                 bid = e.get(_GML_ID) or f"building{len(objects) + 1}"
+                local = appearances.of_object(e, path, f"building {bid}")
                 colours: list = []
-                own = _polygons(e, path, f"building {bid}", stop=("BuildingPart",), colours=colours)
+                ids: list | None = [] if appearances.any else None
+                own = _polygons(e, path, f"building {bid}", stop=("BuildingPart",), colours=colours, ids=ids)
                 if own:
+                    colours = appearances.colours(ids, colours, local) if ids is not None else colours
                     objects.append(SourceObject(bid, "building", [_mesh(own, tri, colours, "building")], {"id": bid}))
                 for part in e.iter():
                     if _local(part.tag) == "BuildingPart":
                         pid = part.get(_GML_ID) or f"{bid}-part{len(objects) + 1}"
-                        colours = []
-                        polys = _polygons(part, path, f"building part {pid}", colours=colours)
+                        colours, ids = [], [] if appearances.any else None
+                        polys = _polygons(part, path, f"building part {pid}", colours=colours, ids=ids)
                         if polys:
+                            colours = appearances.colours(ids, colours, local) if ids is not None else colours
                             objects.append(SourceObject(pid, "buildingpart", [_mesh(polys, tri, colours, "building")],
                                                         {"id": pid, "building": bid}))
                 e.clear()

@@ -2,8 +2,13 @@
 
 An object's geometries at different LoDs become its levels, coarsest → finest, which
 is the LOD chain the builder keeps. Every surface gets a colour (``Mesh.face_colours``):
-its material's ``diffuseColor`` (the first theme), else its semantic type's, else its
-object's IFC or class colour (``server.scene.palette``). All polygons of the file are triangulated in one
+its texture's mean colour (``server.scene.importers.textures``; the geometry's first
+texture theme), else its material's ``diffuseColor`` (the first material theme), else
+its semantic type's, else its object's IFC or class colour (``server.scene.palette``).
+The texture wins over the material for the reason the CityGML importer gives
+(``citygml_appearance``): the texture is the surface's measurement, the material its
+constant approximation; a texture whose image cannot be read (warned once per image)
+leaves the material or semantic colour. All polygons of the file are triangulated in one
 vectorised pass (polygons.py); each level then gets a compact vertex array of its own.
 The whole file is validated before anything is returned, so a malformed file never
 yields a partial scene.
@@ -21,6 +26,7 @@ import numpy as np
 from ..palette import class_colour, ifc_colour, rgb8, surface_colour
 from ..source import Mesh, SourceError, SourceObject, SourceScene
 from .polygons import Rings, flatten_polygons, triangulate_rings
+from .textures import TextureColours
 
 __all__ = ["SUPPORTED_VERSIONS", "load_cityjson", "normalise_crs"]
 
@@ -40,7 +46,7 @@ def load_cityjson(path: str | Path) -> SourceScene:
     city_objects = doc.get("CityObjects")
     if not isinstance(city_objects, dict):
         raise SourceError(f"{path}: 'CityObjects' is missing or not an object")
-    walk = _Walk(path, vertices, doc.get("geometry-templates"), _materials(path, doc))
+    walk = _Walk(path, vertices, doc.get("geometry-templates"), _materials(path, doc), _textures(path, doc))
     for oid, obj in city_objects.items():
         walk.add_object(str(oid), obj)
     objects = walk.build()
@@ -156,6 +162,21 @@ def _materials(path: Path, doc: dict) -> list:
     return out
 
 
+def _textures(path: Path, doc: dict) -> list[str]:
+    """Per texture of the file's appearance, its image path (read when a surface first uses it)."""
+    appearance = doc.get("appearance")
+    textures = appearance.get("textures") if isinstance(appearance, dict) else None
+    if not isinstance(textures, list):
+        return []
+    out = []
+    for i, t in enumerate(textures):
+        image = t.get("image") if isinstance(t, dict) else None
+        if not isinstance(image, str) or not image.strip():
+            raise SourceError(f"{path}: appearance.textures[{i}].image = {image!r} is not an image path")
+        out.append(image)
+    return out
+
+
 def _flat_values(values, depth: int) -> list:
     """A semantics or material ``values`` array flattened to one entry per polygon (None where absent)."""
     level = values if isinstance(values, list) else []
@@ -175,9 +196,12 @@ def _lod_key(lod) -> tuple:
 class _Walk:
     """Collects every surface of every object, then triangulates them all at once."""
 
-    def __init__(self, path: Path, vertices: np.ndarray, templates, materials: list | None = None) -> None:
+    def __init__(self, path: Path, vertices: np.ndarray, templates, materials: list | None = None,
+                 textures: list | None = None) -> None:
         self.path = path
         self.materials = materials or []
+        self.textures = textures or []  # image path per texture
+        self.images = TextureColours(path)  # their mean colours, each image read once
         self.poly_colour: list = []  # RGB8 of each polygon in ``polygons``
         self.instance_colour: list = []  # RGB8 of each instance's polygons
         self.vertices = vertices
@@ -234,7 +258,8 @@ class _Walk:
         self.geoms.append((oid, g, len(polys)))
 
     def _colours(self, geom: dict, depth: int, n: int, fallback: tuple) -> list:
-        """Each of the geometry's n polygons' colour: material, else semantic surface, else ``fallback``."""
+        """Each of the geometry's n polygons' colour: texture, else material, else semantic surface, else
+        ``fallback``."""
         out = [fallback] * n
         semantics = geom.get("semantics")
         if isinstance(semantics, dict) and isinstance(semantics.get("surfaces"), list):
@@ -251,6 +276,19 @@ class _Walk:
                 for i, v in enumerate(values):
                     if isinstance(v, int) and 0 <= v < len(self.materials) and self.materials[v] is not None:
                         out[i] = self.materials[v]
+        themes = geom.get("texture")
+        if isinstance(themes, dict) and themes and self.textures:
+            theme = next(iter(themes.values()))
+            values = theme.get("values") if isinstance(theme, dict) else None
+            # Per polygon a list of rings, each ring [texture, uv index, ...] or [null]: the outer ring's
+            # texture is the polygon's.
+            for i, rings in enumerate(_flat_values(values, depth)[:n]):
+                v = rings[0][0] if (isinstance(rings, list) and rings and isinstance(rings[0], list)
+                                    and rings[0]) else None
+                colour = (self.images.colour(self.textures[v])
+                          if isinstance(v, int) and 0 <= v < len(self.textures) else None)
+                if colour is not None:
+                    out[i] = colour
         return out
 
     def _surfaces(self, boundaries, depth: int, where: str, keep: bool = False):
