@@ -27,8 +27,10 @@ from .slots import SlotTable
 
 __all__ = ["DRAW", "FLAG_MORPH", "FramePlan", "in_frustum", "plan_frame"]
 
-#: Per-draw row (instanced attribute, divisor 1): weight, continuous level, tint (RGBA8 packed little-endian), flags.
-DRAW = np.dtype([("weight", "<f4"), ("level", "<f4"), ("tint", "<u4"), ("flags", "<u4")])
+#: Per-draw row (instanced attribute, divisor 1): weight, continuous level, tint (RGBA8 packed little-endian), flags,
+#: and the representation's texture: its size class (``client.textures``; −1: none) and layer in that class's array.
+DRAW = np.dtype([("weight", "<f4"), ("level", "<f4"), ("tint", "<u4"), ("flags", "<u4"), ("tex_class", "<i4"),
+                 ("tex_layer", "<f4")])
 #: ``DRAW["flags"]`` bit: the draw blends toward its morph target.
 FLAG_MORPH = 1
 
@@ -183,6 +185,8 @@ def plan_frame(
         rows["flags"] = morphing * np.uint32(FLAG_MORPH)
     rows["level"] = 0.0 if lev is None else lev
     rows["tint"] = table.tint[slots]
+    rows["tex_class"] = table.tex_class[slots]
+    rows["tex_layer"] = table.tex_layer[slots]
     commands = table.command[slots]
     commands[:, 4] = np.arange(n, dtype=np.uint32)
 

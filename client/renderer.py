@@ -6,8 +6,8 @@ splats) and ``ctx.finish()``. Uploads, frees and arena compaction happen
 between frames, outside it.
 
 Layout. Resident geometry lives in two ``Arena`` s: a vertex arena of
-``VERTEX`` records (position, morph target, their smooth normals and colours;
-40 bytes, ``client.shading``) and an index arena of uint32 indices, stored as uploaded
+``VERTEX`` records (position, morph target, their smooth normals and colours, texture
+coordinates; 48 bytes, ``client.shading``) and an index arena of uint32 indices, stored as uploaded
 (local to their representation; the draw's baseVertex offsets them). A
 representation is a *slot* in numpy tables (``client.slots``: its indirect
 command template, vertex and triangle counts, tint, bounding sphere, whether it
@@ -16,7 +16,7 @@ has a morph target), so a frame looks up all its reps at once.
 A frame is planned with numpy only (``client.frame_plan``): one
 DrawElementsIndirectCommand per drawn rep (count, 1, firstIndex, baseVertex,
 baseInstance = its row) and a per-draw row (``DRAW``: morph weight, level,
-tint, flags) read by the vertex shader as instanced attributes with divisor 1 —
+tint, flags, texture class and layer) read by the vertex shader as instanced attributes with divisor 1 —
 baseInstance selects the row, so no per-draw uniform (on a software
 rasterizer a uniform change between draws costs as much as the draw). Draws
 are grouped by rendering algorithm (flat, lit, textured: separate programs
@@ -31,6 +31,12 @@ sets it, it is the position itself. Every draw blends w · fine + (1 − w) · t
 with its row's weight: 1 for static draws (bit-exact: the target term is 0) and
 for reps without a target, max(w, 0) for the morphing ones. A morph costs the
 finer level's triangles and vertices, and is counted so.
+
+Textures. A representation whose payload brings a texture keeps it in a layer
+of its size class's texture array (``client.textures``) while it is resident;
+the textured algorithm samples it where the draw's row names one and draws its
+procedural pattern where it does not, so textured and untextured objects share
+one multi-draw. Flat and lit draw the payload's colours (a texture's mean).
 
 Appearance. Each vertex carries the colour its payload gives (``proto.geometry``)
 and its morph target's, blended with the position; a payload without colours is
@@ -71,6 +77,7 @@ from .shading import (VERTEX, key_light, morph_targets, pack_colours, pack_norma
                       vertex_records)
 from .sky import Sky
 from .slots import SlotTable
+from .textures import SIDES, TextureStore
 
 __all__ = ["FrameStats", "FrameTerms", "Renderer", "RendererError", "BACKGROUND", "COLOURS", "Layer",
            "morph_targets"]
@@ -89,9 +96,11 @@ _EGL_HINT = (
 _NEEDS = ("GL_ARB_multi_draw_indirect", "GL_ARB_base_instance")
 _TEXTURE_PERIOD = 64.0  # metres, mesh_textured.frag.glsl's PERIOD
 
-_VERTEX_FORMAT = ("3f 3f 4f1 4f1 4f1 4f1", "in_pos", "in_target", "in_normal", "in_target_normal", "in_colour",
-                  "in_target_colour")
-_DRAW_FORMAT = ("1f 1f 4f1 1u4 /i", "in_weight", "in_level", "in_tint", "in_flags")
+_VERTEX_FORMAT = ("3f 3f 4f1 4f1 4f1 4f1 2f", "in_pos", "in_target", "in_normal", "in_target_normal", "in_colour",
+                  "in_target_colour", "in_uv")
+_DRAW_FORMAT = ("1f 1f 4f1 1u4 1i 1f /i", "in_weight", "in_level", "in_tint", "in_flags", "in_tex_class",
+                "in_tex_layer")
+_TEXTURED = ALGORITHMS.index("textured")
 
 
 class RendererError(RuntimeError):
@@ -168,6 +177,12 @@ class Renderer:
                                                      "u_light_mix")}
             for prog in self.programs
         ]
+        self.textures = TextureStore(self.ctx)
+        """Resident representations' textures (``client.textures``), bound to units 0.. for the textured algorithm."""
+        for k in range(len(SIDES)):  # class k's array is bound to texture unit k
+            sampler = self.programs[_TEXTURED].get(f"u_texture{k}", None)
+            if sampler is not None:
+                sampler.value = k
 
         self.vertex_arena = Arena(self.ctx, VERTEX.itemsize, vertex_capacity)
         self.index_arena = Arena(self.ctx, 4, index_capacity, compact_min=1 << 16)
@@ -214,8 +229,10 @@ class Renderer:
 
         geometry.positions : (nv, 3) float32; geometry.indices : (nf, 3) uint32, every entry < nv.
         geometry.colours : (nv, 3) uint8 or None (then the object's tint). object_id picks the tint, so
-        all levels of one object share a colour. GPU memory: 40 bytes per vertex (``VERTEX``) and 12
-        per triangle, in the arenas. Raises ValueError on an index out of range.
+        all levels of one object share a colour. geometry.uv (nv, 2) and geometry.texture (h, w, 3) uint8,
+        or None: the texture goes into a texture array layer (``client.textures``) until the rep is freed.
+        GPU memory: 48 bytes per vertex (``VERTEX``) and 12 per triangle, in the arenas, and the texture's
+        layer. Raises ValueError on an index out of range.
         """
         rep = int(rep)
         positions = np.ascontiguousarray(geometry.positions, np.float32).reshape(-1, 3)
@@ -224,7 +241,9 @@ class Renderer:
         if nf and int(indices.max()) >= nv:
             raise ValueError(f"representation {rep} has indices beyond its {nv} vertices")
         self.free(rep)
-        records = vertex_records(positions, indices, getattr(geometry, "colours", None))
+        texture = getattr(geometry, "texture", None)
+        uv = getattr(geometry, "uv", None) if texture is not None else None
+        records = vertex_records(positions, indices, getattr(geometry, "colours", None), uv)
         vblock = iblock = -1
         if nv:
             vblock = self.vertex_arena.alloc(nv)
@@ -239,6 +258,8 @@ class Renderer:
         s.tint[slot] = packed_tint(rep if object_id is None else object_id)
         s.target[slot] = False
         s.vblock[slot], s.iblock[slot] = vblock, iblock
+        if texture is not None:
+            s.tex_class[slot], s.tex_layer[slot] = self.textures.add(texture)
         lo, hi = (positions.min(axis=0), positions.max(axis=0)) if nv else (np.zeros(3), np.zeros(3))
         s.bound(slot, lo, hi)
         s.bind(rep, slot)
@@ -303,7 +324,9 @@ class Renderer:
         blocks = self._slots.remove(int(rep))
         if blocks is None:
             return
-        vblock, iblock = blocks
+        vblock, iblock, tex_class, tex_layer = blocks
+        if tex_class >= 0:
+            self.textures.remove(tex_class, tex_layer)
         if vblock >= 0:
             self.vertex_arena.free(vblock)
         if iblock >= 0:
@@ -436,6 +459,9 @@ class Renderer:
                 if uniforms[name] is not None:
                     uniforms[name].value = value
 
+        if per_alg[_TEXTURED]:
+            self.textures.flush()
+            self.textures.use(0)
         c1 = time.perf_counter()
         if self.sky is not None:
             self.fbo.use()
@@ -530,6 +556,7 @@ class Renderer:
         self.meshes.clear()
         self.vertex_arena.release()
         self.index_arena.release()
+        self.textures.release()
         self._draw_rows.release()
         self._commands.release()
         for prog in self.programs:

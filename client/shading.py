@@ -4,7 +4,8 @@ A representation's vertices are stored once, at upload, as ``VERTEX`` records:
 its position, its morph target (the position on the next coarser level; the
 position itself until one is set), the smooth normals at both, so the lit
 algorithm morphs its shading along with the shape, and the colours at both
-(the payload's, ``proto.geometry``), so a morph blends colours too. Normals are packed in
+(the payload's, ``proto.geometry``), so a morph blends colours too, and its texture
+coordinates (zero where the representation has no texture). Normals are packed in
 bytes (n·½+½, the shader's normalised ``4f1``); a colour's fourth byte says whether
 the vertex has one (255) or takes its object's tint (0). Everything here is numpy over
 whole meshes, no GL: the renderer writes the results into its arenas.
@@ -23,9 +24,11 @@ __all__ = ["VERTEX", "vertex_records", "pack_colours", "smooth_normals", "target
 
 #: Vertex record: world position, morph target (= position until set), smooth normal and the target's normal
 #: (n·½+½ in normalised bytes, 4th byte padding), colour and the target's colour (RGB, 4th byte 255 when the
-#: vertex has a colour, 0 when it takes the object's tint). 40 bytes.
+#: vertex has a colour, 0 when it takes the object's tint), texture coordinates (u, v; v up, float: a texture
+#: may repeat). 48 bytes. A morphing vertex keeps its own UV: every level's UVs come from the same source map
+#: (``server.scene.texcoords``), so the coarser level's agree with them where the surfaces agree.
 VERTEX = np.dtype([("position", "<f4", 3), ("target", "<f4", 3), ("normal", "u1", 4), ("target_normal", "u1", 4),
-                   ("colour", "u1", 4), ("target_colour", "u1", 4)])
+                   ("colour", "u1", 4), ("target_colour", "u1", 4), ("uv", "<f4", 2)])
 _AXES = np.arange(3)
 
 
@@ -44,11 +47,13 @@ def pack_colours(colours: np.ndarray | None, n: int) -> np.ndarray:
     return packed
 
 
-def vertex_records(positions: np.ndarray, indices: np.ndarray, colours: np.ndarray | None = None) -> np.ndarray:
+def vertex_records(positions: np.ndarray, indices: np.ndarray, colours: np.ndarray | None = None,
+                   uv: np.ndarray | None = None) -> np.ndarray:
     """(nv,) ``VERTEX`` records of a mesh without a morph target (the target is the position itself).
 
     positions : (nv, 3) float32; indices : (nf, 3) uint32, every entry < nv
     colours   : (nv, 3) uint8 per vertex, or None (drawn in the object's tint)
+    uv        : (nv, 2) float texture coordinates, or None (no texture: zeros)
     """
     records = np.empty(positions.shape[0], VERTEX)
     records["position"] = positions
@@ -57,6 +62,13 @@ def vertex_records(positions: np.ndarray, indices: np.ndarray, colours: np.ndarr
     records["target_normal"] = records["normal"]
     records["colour"] = pack_colours(colours, positions.shape[0])
     records["target_colour"] = records["colour"]
+    if uv is None:
+        records["uv"] = 0.0
+    else:
+        uv = np.asarray(uv)
+        if uv.shape != (positions.shape[0], 2):
+            raise ValueError(f"uv must be ({positions.shape[0]}, 2), got {uv.shape}")
+        records["uv"] = uv
     return records
 
 

@@ -17,7 +17,8 @@ __all__ = ["SlotTable", "DENSE_LIMIT"]
 #: Rep ids below this live in the dense lookup table (≤ 64 MiB); others (and negatives) in a sorted overflow.
 DENSE_LIMIT = 1 << 24
 
-_COLUMNS = ("command", "vertices", "faces", "tint", "target", "vblock", "iblock", "centre", "half", "sphere")
+_COLUMNS = ("command", "vertices", "faces", "tint", "target", "vblock", "iblock", "centre", "half", "sphere",
+            "tex_class", "tex_layer")
 
 
 def _sphere(centre: np.ndarray, half: np.ndarray) -> tuple[float, float, float, float]:
@@ -38,6 +39,8 @@ class SlotTable:
     centre, half : (c, 3) float64 — the box over the fine positions and the morph target
     sphere   : (c, 4) float32 — its bounding sphere x, y, z, r (half the bytes a frame gathers),
                r padded over float32's rounding
+    tex_class, tex_layer : (c,) int32 / float32 — its texture's size class and layer (``client.textures``),
+               −1 / 0: no texture
     meshes   : resident rep id → slot
     """
 
@@ -52,6 +55,8 @@ class SlotTable:
         self.centre = np.zeros((0, 3), np.float64)
         self.half = np.zeros((0, 3), np.float64)
         self.sphere = np.zeros((0, 4), np.float32)
+        self.tex_class = np.zeros(0, np.int32)
+        self.tex_layer = np.zeros(0, np.float32)
         self.grow(capacity)
         self._free: list[int] = list(range(capacity - 1, -1, -1))
         self._table = np.full(1024, -1, np.int32)
@@ -69,6 +74,7 @@ class SlotTable:
             setattr(self, name, b)
         self.vblock[old:] = -1
         self.iblock[old:] = -1
+        self.tex_class[old:] = -1
 
     def new(self) -> int:
         """A free slot (the tables grow when none is left); ``bind`` it to a rep once filled."""
@@ -90,8 +96,9 @@ class SlotTable:
             self._overflow[rep] = slot
             self._overflow_keys = None
 
-    def remove(self, rep: int) -> tuple[int, int] | None:
-        """Unbind ``rep`` and recycle its slot; returns the (vertex, index) arena blocks it held (−1: none).
+    def remove(self, rep: int) -> tuple[int, int, int, int] | None:
+        """Unbind ``rep`` and recycle its slot; returns the (vertex, index) arena blocks it held (−1: none)
+        and its texture's (class, layer) (−1, −1: none).
 
         None if ``rep`` is not resident.
         """
@@ -103,7 +110,9 @@ class SlotTable:
         else:
             del self._overflow[rep]
             self._overflow_keys = None  # rebuilt at the next lookup
-        blocks = int(self.vblock[slot]), int(self.iblock[slot])
+        blocks = (int(self.vblock[slot]), int(self.iblock[slot]), int(self.tex_class[slot]),
+                  int(self.tex_layer[slot]) if self.tex_class[slot] >= 0 else -1)
+        self.tex_class[slot], self.tex_layer[slot] = -1, 0.0
         self.command[slot] = 0
         self.vertices[slot] = self.faces[slot] = 0
         self.target[slot] = False

@@ -14,6 +14,14 @@ A mesh whose faces differ in colour has its vertices split where colours meet, s
 per-vertex colour is a per-face colour too. Payloads without ``cb`` (colourless
 objects, stores built before colours) decode with ``Geometry.colours`` None.
 
+A textured representation also carries texture coordinates (``tb``, per vertex,
+quantized to 16 bits in their own box, since they may repeat past [0, 1]) and its
+own base-colour texture (``tx``, a PNG: ``proto.texture``), so a coarser level
+carries a smaller texture and every byte count sees it. UVs follow OpenGL's
+convention (v = 0 at the image's bottom row); the texture's rows are top-down,
+as the image stores them. The two come together or not at all; payloads without
+them decode with ``Geometry.uv`` and ``Geometry.texture`` None.
+
 Payload (a msgpack map)::
 
     enc  "mq16"                      encoding tag
@@ -24,6 +32,12 @@ Payload (a msgpack map)::
     vb   bytes                       meshopt vertex buffer, nv × 4 uint16 (x, y, z, 0)
     ib   bytes                       meshopt index buffer, 3·nf uint32
     cb   bytes, optional             meshopt vertex buffer, nv × 4 uint8 (r, g, b, 255)
+    tb   bytes, optional             meshopt vertex buffer, nv × 2 uint16 (u, v) quantized in the UV box
+    tlo  [u, v] float, with tb       UV box minimum
+    text [u, v] float, with tb       UV box extent (> 0)
+    tx   bytes, with tb              the base-colour texture, PNG (RGB)
+    tw   int, with tx                its width in pixels (1..4096)
+    th   int, with tx                its height in pixels (1..4096)
 """
 
 from __future__ import annotations
@@ -35,6 +49,7 @@ import msgpack
 import numpy as np
 
 from .errors import ProtocolError
+from .texture import MAX_TEXTURE_SIDE, decode_texture, encode_texture
 
 __all__ = ["ENCODING", "MAX_VERTICES", "MAX_FACES", "Geometry", "order_for_gpu", "encode_geometry", "decode_geometry"]
 
@@ -51,11 +66,15 @@ class Geometry:
     positions : (nv, 3) float32, world space
     indices   : (nf, 3) uint32, every entry < nv
     colours   : (nv, 3) uint8 RGB per vertex, or None (the object has no colour of its own)
+    uv        : (nv, 2) float32 texture coordinates (v up), or None (no texture)
+    texture   : (h, w, 3) uint8 RGB base-colour texture, rows top-down, or None
     """
 
     positions: np.ndarray
     indices: np.ndarray
     colours: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    texture: np.ndarray | None = None
 
     @property
     def vertices(self) -> int:
@@ -133,6 +152,8 @@ def encode_geometry(
     *,
     reorder: bool = True,
     colours: np.ndarray | None = None,
+    uv: np.ndarray | None = None,
+    texture: np.ndarray | bytes | None = None,
 ) -> bytes:
     """Encode a triangle mesh into a payload.
 
@@ -145,6 +166,8 @@ def encode_geometry(
         and faces exactly in the given order (unused vertices included), so stored
         vertex ids are the caller's — pass a mesh already in GPU order.
     colours   : (nv, 3) uint8 RGB per vertex, or None for a colourless payload
+    uv        : (nv, 2) float texture coordinates, with ``texture``; or None
+    texture   : (h, w, 3) uint8 RGB rows top-down, or its PNG bytes (``proto.texture``); with ``uv``
     """
     positions = np.asarray(positions, dtype=np.float64)
     faces = np.asarray(faces)
@@ -163,16 +186,26 @@ def encode_geometry(
         colours = np.asarray(colours)
         if colours.shape != (nv, 3) or colours.dtype != np.uint8:
             raise ValueError(f"colours must be ({nv}, 3) uint8, got {colours.dtype} {colours.shape}")
+    if (uv is None) != (texture is None):
+        raise ValueError("uv and texture come together: a payload has both or neither")
+    if uv is not None:
+        uv = np.asarray(uv, np.float64)
+        if uv.shape != (nv, 2) or not np.isfinite(uv).all():
+            raise ValueError(f"uv must be ({nv}, 2) finite, got {uv.shape}")
     if box_lo is None or box_hi is None:
         box_lo, box_hi = positions.min(axis=0), positions.max(axis=0)
     lo, ext = safe_box(box_lo, box_hi)
     if reorder:
         positions, faces, new_of_old = order_for_gpu(positions, faces)
+        kept = new_of_old >= 0
         if colours is not None:
-            kept = new_of_old >= 0
             reordered = np.empty((positions.shape[0], 3), np.uint8)
             reordered[new_of_old[kept]] = colours[kept]
             colours = reordered
+        if uv is not None:
+            moved = np.empty((positions.shape[0], 2), np.float64)
+            moved[new_of_old[kept]] = uv[kept]
+            uv = moved
     flat = np.ascontiguousarray(faces, dtype=np.uint32).reshape(-1)
     q = quantize(positions, lo, ext)
     nv = q.shape[0]
@@ -189,7 +222,40 @@ def encode_geometry(
         rgba = np.full((nv, 4), 255, np.uint8)
         rgba[:, :3] = colours
         payload["cb"] = meshoptimizer.encode_vertex_buffer(rgba, nv, 4)
+    if uv is not None:
+        payload.update(_encode_uv(uv, texture))
     return msgpack.packb(payload, use_bin_type=True)
+
+
+def _encode_uv(uv: np.ndarray, texture: np.ndarray | bytes) -> dict:
+    """The payload's texture fields for uv (nv, 2) float and an RGB texture (or its PNG)."""
+    if isinstance(texture, (bytes, bytearray)):
+        png = bytes(texture)
+        height, width = decode_texture(png, *_png_size(png)).shape[:2]  # a bad PNG fails here, not at the client
+    else:
+        png = encode_texture(texture)
+        height, width = np.asarray(texture).shape[:2]
+    if max(width, height) > MAX_TEXTURE_SIDE:
+        raise ValueError(f"texture {width}×{height} has a side over {MAX_TEXTURE_SIDE} px")
+    ulo, uext = safe_box(uv.min(axis=0), uv.max(axis=0))
+    q = np.clip(np.rint((uv - ulo) / uext * _QMAX), 0, _QMAX).astype(np.uint16)
+    q = np.ascontiguousarray(q)
+    return {"tb": meshoptimizer.encode_vertex_buffer(q, q.shape[0], 4),
+            "tlo": [float(x) for x in ulo], "text": [float(x) for x in uext],
+            "tx": png, "tw": int(width), "th": int(height)}
+
+
+def _png_size(png: bytes) -> tuple[int, int]:
+    """(width, height) from a PNG's header; ValueError if it has none."""
+    import io
+
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(png), formats=["PNG"]) as image:
+            return image.size
+    except Exception as exc:
+        raise ValueError(f"texture bytes are not a PNG: {exc}") from None
 
 
 def _field(payload: dict, name: str, kind: type | tuple[type, ...]) -> object:
@@ -201,10 +267,10 @@ def _field(payload: dict, name: str, kind: type | tuple[type, ...]) -> object:
     return value
 
 
-def _vec3(payload: dict, name: str) -> np.ndarray:
+def _vec3(payload: dict, name: str, n: int = 3) -> np.ndarray:
     value = _field(payload, name, list)
-    if len(value) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value):
-        raise ProtocolError("bad_geometry", f"geometry field '{name}' must be three numbers")
+    if len(value) != n or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value):
+        raise ProtocolError("bad_geometry", f"geometry field '{name}' must be {('two', 'three')[n - 2]} numbers")
     arr = np.asarray(value, np.float64)
     if not np.isfinite(arr).all():
         raise ProtocolError("bad_geometry", f"geometry field '{name}' is not finite")
@@ -241,7 +307,9 @@ def decode_geometry(blob: bytes) -> Geometry:
     idx = np.frombuffer(np.ascontiguousarray(idx).tobytes(), dtype=np.uint32).reshape(nf, 3)
     if int(idx.max()) >= nv:
         raise ProtocolError("bad_geometry", f"index {int(idx.max())} out of range for {nv} vertices")
-    return Geometry(positions=dequantize(q, lo, ext), indices=idx, colours=_colours(payload, nv))
+    uv, texture = _texture(payload, nv)
+    return Geometry(positions=dequantize(q, lo, ext), indices=idx, colours=_colours(payload, nv), uv=uv,
+                    texture=texture)
 
 
 def _colours(payload: dict, nv: int) -> np.ndarray | None:
@@ -257,3 +325,27 @@ def _colours(payload: dict, nv: int) -> np.ndarray | None:
     if len(raw) != 4 * nv:
         raise ProtocolError("bad_geometry", f"geometry colour buffer holds {len(raw)} bytes, expected {4 * nv}")
     return np.frombuffer(raw, np.uint8).reshape(nv, 4)[:, :3].copy()
+
+
+def _texture(payload: dict, nv: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The optional UVs (nv, 2) float32 and texture (h, w, 3) uint8, or (None, None) when the payload has none."""
+    present = [k for k in ("tb", "tx") if k in payload]
+    if not present:
+        return None, None
+    if len(present) == 1:
+        raise ProtocolError("bad_geometry", f"geometry payload has '{present[0]}' without "
+                                            f"'{({'tb', 'tx'} - set(present)).pop()}'")
+    tb = _field(payload, "tb", bytes)
+    ulo, uext = _vec3(payload, "tlo", 2), _vec3(payload, "text", 2)
+    if (uext <= 0).any():
+        raise ProtocolError("bad_geometry", "geometry UV box extent must be positive")
+    try:
+        q = meshoptimizer.decode_vertex_buffer(nv, 4, tb)
+    except Exception as exc:
+        raise ProtocolError("bad_geometry", f"geometry UV buffer does not decode: {exc}") from None
+    raw = np.ascontiguousarray(q).tobytes()
+    if len(raw) != 4 * nv:
+        raise ProtocolError("bad_geometry", f"geometry UV buffer holds {len(raw)} bytes, expected {4 * nv}")
+    uv = (ulo + np.frombuffer(raw, np.uint16).reshape(nv, 2).astype(np.float64) * (uext / _QMAX)).astype(np.float32)
+    texture = decode_texture(_field(payload, "tx", bytes), _field(payload, "tw", int), _field(payload, "th", int))
+    return uv, texture

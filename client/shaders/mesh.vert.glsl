@@ -27,10 +27,13 @@ in vec4 in_normal;               // smooth normal, n · ½ + ½ in normalised by
 in vec4 in_target_normal;        // the morph target's normal, the same way (lit only)
 in vec4 in_colour;               // the vertex's colour; a = 1 when it has one, 0: the object's tint
 in vec4 in_target_colour;        // the morph target's colour, the same way
+in vec2 in_uv;                   // texture coordinates (textured only; v up)
 in float in_weight;              // per draw: morph weight in [0, 1] (1: static)
 in float in_level;               // per draw: continuous level, for the false colours
 in vec4 in_tint;                 // per draw: the object's colour
 in uint in_flags;                // per draw: FLAG_MORPH
+in int in_tex_class;             // per draw: the texture's size class, -1: none (textured only)
+in float in_tex_layer;           // per draw: its layer in that class's texture array
 
 out vec3 v_rel;                  // position relative to the eye
 out vec3 v_colour;               // the surface colour (the data's, the tint, or the level's false colour)
@@ -38,6 +41,11 @@ flat out uint v_flags;
 #if ALGORITHM == 1
 out vec3 v_light;                // Gouraud: the lighting, per vertex
 out float v_specular;
+#endif
+#if ALGORITHM == 2
+out vec2 v_uv;
+flat out int v_tex_class;
+flat out float v_tex_layer;
 #endif
 
 void main() {
@@ -56,6 +64,11 @@ void main() {
     v_light = light(n);
     vec3 h = normalize(u_sun + to_eye);
     v_specular = pow(max(dot(n, h), 0.0), 24.0) * 0.25;
+#endif
+#if ALGORITHM == 2
+    v_uv = in_uv;
+    v_tex_class = in_tex_class;
+    v_tex_layer = in_tex_layer;
 #endif
     gl_Position = u_view_projection * vec4(v_rel, 1.0);
 }

@@ -1,18 +1,31 @@
 #version 330 core
-// Textured (algorithm 2): a procedural world-space stone-and-brick texture,
-// projected triplanar over the surface's colour and lit like flat. Deliberately heavier per pixel (three
-// brick lookups and four octaves of value noise per projection) so that its
-// fill cost is measurably higher than the other algorithms'.
+// Textured (algorithm 2): the representation's own base-colour texture where it has
+// one (its draw row names the texture array of its size class and its layer there,
+// client.textures), lit like flat; where it has none, a procedural world-space
+// stone-and-brick texture, projected triplanar over the surface's colour.
+// The procedural one is deliberately heavier per pixel (three brick lookups and
+// four octaves of value noise per projection) so that its fill cost is measurably
+// higher than the other algorithms'.
+//
+// GLSL 3.30 indexes sampler arrays by constants only, so each class has its own
+// sampler and a switch picks it; every fragment of a draw takes the same case. The
+// UV derivatives are taken before the switch (textureGrad), where control flow is
+// uniform, so the mipmap level is well defined.
 //
 // Precision: the pattern repeats every 64 m, and u_eye_wrap is the eye modulo
 // 64 m (computed in double on the CPU), so v_rel + u_eye_wrap is the world
 // position modulo 64 m with full float precision however far from the origin.
 
 uniform vec3 u_eye_wrap;
+uniform sampler2DArray u_texture0, u_texture1, u_texture2, u_texture3, u_texture4,
+                       u_texture5, u_texture6, u_texture7, u_texture8, u_texture9;  // 8 .. 4096 px
 
 in vec3 v_rel;
 in vec3 v_colour;
 flat in uint v_flags;
+in vec2 v_uv;
+flat in int v_tex_class;
+flat in float v_tex_layer;
 out vec4 f_color;
 
 const float PERIOD = 64.0;
@@ -52,8 +65,29 @@ float brick(vec2 p) {
     return mix(0.45, tone, mortar);
 }
 
+vec3 texel(vec2 dx, vec2 dy) {
+    vec3 at = vec3(v_uv, v_tex_layer);
+    switch (v_tex_class) {
+        case 0: return textureGrad(u_texture0, at, dx, dy).rgb;
+        case 1: return textureGrad(u_texture1, at, dx, dy).rgb;
+        case 2: return textureGrad(u_texture2, at, dx, dy).rgb;
+        case 3: return textureGrad(u_texture3, at, dx, dy).rgb;
+        case 4: return textureGrad(u_texture4, at, dx, dy).rgb;
+        case 5: return textureGrad(u_texture5, at, dx, dy).rgb;
+        case 6: return textureGrad(u_texture6, at, dx, dy).rgb;
+        case 7: return textureGrad(u_texture7, at, dx, dy).rgb;
+        case 8: return textureGrad(u_texture8, at, dx, dy).rgb;
+        default: return textureGrad(u_texture9, at, dx, dy).rgb;
+    }
+}
+
 void main() {
     vec3 n = normalize(cross(dFdx(v_rel), dFdy(v_rel)));
+    vec2 dx = dFdx(v_uv), dy = dFdy(v_uv);
+    if (v_tex_class >= 0 && !u_false_colour && !u_object_colours) {
+        f_color = vec4(texel(dx, dy) * light(n), 1.0);
+        return;
+    }
     vec3 p = v_rel + u_eye_wrap;
     vec3 w = pow(abs(n), vec3(4.0));
     w /= w.x + w.y + w.z;

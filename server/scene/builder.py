@@ -48,6 +48,7 @@ from .lod import build_chain, chain_from_levels
 from .source import Mesh, SourceScene
 from .store import SceneStore
 from .surface import is_closed
+from .texcoords import UVReference, textured_levels
 from .tour import named_tours, orbit_tour, scene_tours
 from .workers import POOL_MIN_JOBS, default_workers, pool_map
 from .writer import SceneWriter, encode_levels
@@ -133,8 +134,9 @@ class ChainRows:
 
 
 def _chain_job(args: tuple) -> ChainRows:
-    """One object's rows (``ChainRows``); every level takes its colours from ``ref`` (``server.scene.colours``)."""
-    levels, morph, min_saving, building, guard, bounds, ref = args
+    """One object's rows (``ChainRows``); every level takes its colours from ``ref`` (``server.scene.colours``)
+    and, for a textured object, its UVs and its own texture from ``uvref`` (``server.scene.texcoords``)."""
+    levels, morph, min_saving, building, guard, bounds, ref, uvref = args
     fidelity = None
     box = None
     regenerated = dropped = 0
@@ -159,7 +161,13 @@ def _chain_job(args: tuple) -> ChainRows:
         chain = chain_from_levels(kept[::-1], morph="nearest")
     # morph[k] maps level k's vertices onto level k-1's; the coarsest level (and morph="none") has none.
     appearance = None
-    if ref is None:
+    if uvref is not None:
+        stored, maps, colours, uvs, textures = textured_levels(ref, uvref, chain.levels, chain.morph)
+        lo, hi, blobs, morphs = encode_levels(stored, maps, reorder=False, colours=colours, uvs=uvs,
+                                              textures=textures)
+        if ref is not None:
+            appearance = Appearance.of_level(*stored[0], colours[0], ref.by_face)
+    elif ref is None:
         lo, hi, blobs, morphs = encode_levels(chain.levels, chain.morph, reorder=False)
     else:
         stored, maps, colours = coloured_levels(ref, chain.levels, chain.morph)
@@ -266,7 +274,7 @@ def build_store(
     objects = [o for o in source.objects if o.levels and all(m.n_faces for m in o.levels)]
     jobs = [([(m.positions - origin, m.faces) for m in o.levels], options.morph, options.min_saving,
              _is_building(o.cls), options.shape_guard and not _is_ground(o.cls), options.bounds,
-             Appearance.of(o.levels[-1], origin))
+             Appearance.of(o.levels[-1], origin), UVReference.of(o.levels[-1], origin))
             for o in objects]
     chains: list[tuple] = []
     tick("chains", 0, len(jobs))

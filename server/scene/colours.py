@@ -47,7 +47,8 @@ from proto.geometry import order_for_gpu
 
 from .source import Mesh
 
-__all__ = ["Appearance", "transfer", "split_by_colour", "coloured_levels", "coloured_mesh", "constant"]
+__all__ = ["Appearance", "transfer", "split_by_colour", "coloured_levels", "coloured_mesh", "constant",
+           "rewrite_morphs"]
 
 Level = tuple[np.ndarray, np.ndarray]
 
@@ -197,8 +198,21 @@ def coloured_levels(ref: Appearance, levels: Sequence[Level], morphs: Sequence[n
         out_levels.append((gp, gf))
         colours.append(sc[old_of_new])
         sources.append(src[old_of_new])
-    out_morphs: list[np.ndarray | None] = [None] * len(levels)
-    for k in range(1, len(levels)):
+    return out_levels, rewrite_morphs(morphs, sources, colours), colours
+
+
+def rewrite_morphs(morphs: Sequence[np.ndarray | None], sources: Sequence[np.ndarray],
+                   colours: Sequence[np.ndarray]) -> list[np.ndarray | None]:
+    """Morph maps onto split levels: a fine vertex morphs to the copy of its target that has its own colour
+    when the coarser level has one, else to the target's first copy.
+
+    morphs  : per level, None or the (n_k,) map onto level k−1's vertices before either was split
+    sources : per level, (n'_k,) int64 — the unsplit vertex each split vertex was made from
+    colours : per level, (n'_k, 3) uint8 per split vertex
+    Returns per level None or the (n'_k,) map onto level k−1's split vertices.
+    """
+    out_morphs: list[np.ndarray | None] = [None] * len(sources)
+    for k in range(1, len(sources)):
         m = morphs[k]
         if m is None:
             continue
@@ -211,7 +225,7 @@ def coloured_levels(ref: Appearance, levels: Sequence[Level], morphs: Sequence[n
         same = sorted_key[at] == want
         first = np.searchsorted(sorted_key, target * (1 << 24))  # the first copy of the target
         out_morphs[k] = order[np.where(same, at, first)]
-    return out_levels, out_morphs, colours
+    return out_morphs
 
 
 def coloured_mesh(ref: Appearance, positions: np.ndarray, faces: np.ndarray

@@ -31,12 +31,19 @@ class Mesh:
     vertex_colours : (n, 3) uint8 RGB per vertex — colours that vary across a surface; or None
     A mesh has at most one of the two; the builder carries either through its levels
     (``server.scene.colours``).
+    uv             : (n, 2) float64 texture coordinates (OpenGL's: v = 0 at the image's bottom row); or None
+    texture        : (h, w, 3) uint8 RGB base-colour texture, rows top-down, with ``uv``; or None
+    A textured mesh keeps its colours too (the material's colour), which the flat and lit
+    algorithms draw; the builder gives every level its own UVs and texture
+    (``server.scene.texcoords``).
     """
 
     positions: np.ndarray
     faces: np.ndarray
     face_colours: np.ndarray | None = None
     vertex_colours: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    texture: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = np.asarray(self.positions, np.float64).reshape(-1, 3)
@@ -47,6 +54,20 @@ class Mesh:
             self.face_colours = _rgb8(self.face_colours, self.faces.shape[0], "face_colours")
         if self.vertex_colours is not None:
             self.vertex_colours = _rgb8(self.vertex_colours, self.positions.shape[0], "vertex_colours")
+        if (self.uv is None) != (self.texture is None):
+            raise ValueError("a mesh has uv and texture together, or neither")
+        if self.uv is not None:
+            self.uv = np.asarray(self.uv, np.float64)
+            if self.uv.shape != (self.n_vertices, 2) or not np.isfinite(self.uv).all():
+                raise ValueError(f"uv must be ({self.n_vertices}, 2) finite, got {self.uv.shape}")
+            t = np.asarray(self.texture)
+            if t.ndim != 3 or t.shape[2] != 3 or t.dtype != np.uint8 or min(t.shape[:2]) < 1:
+                raise ValueError(f"texture must be (h, w, 3) uint8, got {t.dtype} {t.shape}")
+            self.texture = t
+
+    @property
+    def textured(self) -> bool:
+        return self.texture is not None
 
     @property
     def coloured(self) -> bool:

@@ -383,6 +383,7 @@ def object_box(levels: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndar
 def encode_levels(levels: Sequence[tuple[np.ndarray, np.ndarray]],
                   morphs: Sequence[np.ndarray | None] | None = None, *, reorder: bool = True,
                   colours: Sequence[np.ndarray] | None = None,
+                  uvs: Sequence[np.ndarray] | None = None, textures: Sequence[np.ndarray] | None = None,
                   ) -> tuple[np.ndarray, np.ndarray, list[bytes], list[bytes | None] | None]:
     """An object's levels as store payloads: (lo (3,), hi (3,) float64, geometry blobs, morph blobs).
 
@@ -393,11 +394,16 @@ def encode_levels(levels: Sequence[tuple[np.ndarray, np.ndarray]],
     reorder: put each level in GPU order while encoding; morph maps index stored vertices, so
              levels that carry them must already be in that order (``reorder=False``)
     colours: per level, (n_k, 3) uint8 per vertex (``server.scene.colours``), or None: colourless
+    uvs, textures : per level, (n_k, 2) float UVs and (s_k, s_k, 3) uint8 texture
+             (``server.scene.texcoords``), or None: untextured
     """
     lo, hi = object_box(levels)
     if colours is not None and len(colours) != len(levels):
         raise ValueError(f"{len(levels)} levels but {len(colours)} colour arrays")
-    blobs = [encode_geometry(p, f, lo, hi, reorder=reorder, colours=None if colours is None else colours[k])
+    if (uvs is None) != (textures is None) or (uvs is not None and not len(uvs) == len(textures) == len(levels)):
+        raise ValueError(f"{len(levels)} levels need as many UV arrays and textures, or neither")
+    blobs = [encode_geometry(p, f, lo, hi, reorder=reorder, colours=None if colours is None else colours[k],
+                             uv=None if uvs is None else uvs[k], texture=None if textures is None else textures[k])
              for k, (p, f) in enumerate(levels)]
     encoded = None
     if morphs is not None:

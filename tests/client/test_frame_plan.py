@@ -119,7 +119,7 @@ def test_bad_arguments_are_refused(kw, match) -> None:
 def test_removed_reps_are_missing_and_their_slots_reused() -> None:
     table = _table(MESHES)
     table.vblock[table.meshes[2]] = 123
-    assert table.remove(2) == (123, -1) and table.remove(2) is None
+    assert table.remove(2) == (123, -1, -1, -1) and table.remove(2) is None
     assert table.remove(1 << 30) is not None
     plan = plan_frame(np.array([2, 1 << 30, 1]), table, VP, EYE)
     assert plan.missing == 2 and len(plan) == 1

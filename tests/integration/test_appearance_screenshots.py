@@ -5,7 +5,10 @@
   its walls' pixels light and neutral;
 - a city with the ground the builder lays under it (the Berlin LoD2 blocks, which bring no
   terrain): at street level, looking slightly down, no pixel below the horizon shows the sky;
-- a glTF box with a base colour factor: drawn in that colour.
+- a glTF box with a base colour factor: drawn in that colour;
+- a glTF box with a red/green checkerboard base-colour texture, drawn with the ``textured``
+  algorithm: both checker colours alternate along a row of its pixels; the same box without
+  the texture shows the procedural pattern over its colour instead, and no checker.
 """
 
 from __future__ import annotations
@@ -32,16 +35,44 @@ from server.scene.store import SceneStore
 W, H, FOV = 320, 240, 60.0
 
 
+CHECKER_RED, CHECKER_GREEN = (220, 30, 30), (30, 200, 40)
+
+
+def _checker_box(textured: bool) -> trimesh.Trimesh:
+    """A 4 m box, each face mapped onto the whole of a 256 px texture of 8 × 8 red and green squares (or,
+    untextured, the same box in a plain grey)."""
+    box = trimesh.creation.box((4.0, 4.0, 4.0))
+    box.unmerge_vertices()
+    v, f = np.asarray(box.vertices), np.asarray(box.faces)
+    axis = np.argmax(np.abs(box.face_normals), axis=1)
+    uv = np.zeros((len(v), 2))
+    for a in range(3):
+        corners = f[axis == a].ravel()
+        uv[corners] = (v[corners][:, [o for o in range(3) if o != a]] + 2.0) / 4.0
+    if not textured:
+        box.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(baseColorFactor=[150, 150, 150, 255]))
+        return box
+    tex = np.zeros((256, 256, 3), np.uint8)
+    odd = (np.indices((256, 256)) // 32).sum(axis=0) % 2 == 1
+    tex[~odd], tex[odd] = CHECKER_RED, CHECKER_GREEN
+    box.visual = trimesh.visual.TextureVisuals(uv=uv, material=PBRMaterial(baseColorFactor=[255, 255, 255, 255],
+                                                                           baseColorTexture=Image.fromarray(tex)))
+    return box
+
+
 @pytest.fixture(scope="module")
 def stores(tmp_path_factory) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("appearance")
     box = trimesh.creation.box((4.0, 4.0, 4.0))
     box.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(baseColorFactor=[40, 90, 220, 255]))
     trimesh.Scene(box).export(folder / "bluebox.glb")
+    trimesh.Scene(_checker_box(True)).export(folder / "checkerbox.glb")
+    trimesh.Scene(_checker_box(False)).export(folder / "greybox.glb")
     out = {}
     for key, source in (("fzk", data_file("interior/AC20-FZK-Haus.city.json")),
                         ("berlin", data_file("trees/berlin_buildings_lod2.gml")),
-                        ("box", folder / "bluebox.glb")):
+                        ("box", folder / "bluebox.glb"), ("checker", folder / "checkerbox.glb"),
+                        ("grey", folder / "greybox.glb")):
         out[key] = folder / f"{key}.db"
         build_path(source, out[key], workers=1)
     return out
@@ -58,14 +89,17 @@ def _origin(store: Path) -> tuple[str, np.ndarray]:
         return s.index.name, np.asarray(s.index.meta["origin"], np.float64)
 
 
-def _shoot(server, store: Path, eye, target, path: Path, seconds: float = 5.0, sky: bool = True) -> np.ndarray:
+def _shoot(server, store: Path, eye, target, path: Path, seconds: float = 5.0, sky: bool = True,
+           algorithms: tuple[str, ...] | None = None) -> np.ndarray:
     """The client's last frame from a fixed pose (store coordinates) after ``seconds`` of streaming
-    (``sky=False``: cleared to the plain ``BACKGROUND`` instead of the sky)."""
+    (``sky=False``: cleared to the plain ``BACKGROUND`` instead of the sky; ``algorithms``: those the
+    client offers, default all)."""
     name, _ = _origin(store)
     forward = (np.asarray(target, float) - np.asarray(eye, float)).tolist()
     key = {"eye": list(map(float, eye)), "forward": forward, "up": [0.0, 0.0, 1.0]}
     run = run_client(server.url, name, duration=seconds, viewport=(W, H), fov_y=FOV, target_frame_time=0.25,
-                     screenshot=path, tour=[{"t": 0.0, **key}, {"t": 1000.0, **key}], sky=sky)
+                     screenshot=path, tour=[{"t": 0.0, **key}, {"t": 1000.0, **key}], sky=sky,
+                     **({} if algorithms is None else {"algorithms": algorithms}))
     assert not run.errors and len(run.frames) > 3
     return np.asarray(Image.open(path).convert("RGB")).astype(np.int64)
 
@@ -193,3 +227,36 @@ def test_the_walk_tours_first_frame_stands_on_ground_below_the_horizon(server, s
     assert below < H
     bare = np.abs(image - background).max(axis=2) <= 2
     assert not bare[below:].any(), f"background below the horizon in rows {np.unique(np.nonzero(bare[below:])[0] + below)}"
+
+
+def _checker_kinds(row: np.ndarray) -> np.ndarray:
+    """Per pixel of a row: 0 where it is the checker's red, 1 its green, −1 neither."""
+    red = (row[:, 0] > 1.8 * row[:, 1]) & (row[:, 0] > 1.8 * row[:, 2])
+    green = (row[:, 1] > 1.8 * row[:, 0]) & (row[:, 1] > 1.8 * row[:, 2])
+    return np.where(red, 0, np.where(green, 1, -1))
+
+
+def test_a_textured_gltf_draws_its_texture_and_an_untextured_one_the_procedural_pattern(server, stores,
+                                                                                         tmp_path) -> None:
+    """Drawn with the textured algorithm only: the checker box's pixels alternate red and green along a row;
+    the grey box's (the same box without the texture) are its grey under the bricks, never the checker."""
+    rows = {}
+    for key in ("checker", "grey"):
+        _, origin = _origin(stores[key])
+        image = _shoot(server, stores[key], np.array([7.0, -9.0, 6.0]) - origin, -origin, tmp_path / f"{key}.png",
+                       4.0, sky=False, algorithms=("textured",))
+        background = np.round(np.asarray(BACKGROUND) * 255)
+        band = image[H // 2 - 10: H // 2 + 10]
+        on_box = np.abs(band - background).max(axis=2) > 2
+        assert on_box.mean(axis=1).min() > 0.1, f"{key}: the box covers too little of the centre rows"
+        rows[key] = [band[i][on_box[i]] for i in range(band.shape[0])]
+    switches = []
+    for row in rows["checker"]:
+        kinds = _checker_kinds(row)
+        assert (kinds == 0).mean() > 0.2 and (kinds == 1).mean() > 0.2  # both checker colours on the box
+        k = kinds[kinds >= 0]
+        switches.append(int(np.count_nonzero(np.diff(k))))
+    assert min(switches) >= 3  # alternating along every row: a checker, not two coloured faces
+    for row in rows["grey"]:
+        assert (_checker_kinds(row) < 0).all()
+        assert np.ptp(row.mean(axis=1)) > 5  # the procedural pattern, not a flat colour

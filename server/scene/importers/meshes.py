@@ -8,10 +8,18 @@ Appearance (``server.scene.palette``): a PLY's or OBJ's vertex or face colours a
 are; a material's base colour factor (glTF) or diffuse colour (OBJ), times its
 base-colour texture's mean colour when it has one; a mesh with none of these is
 drawn in its class colour.
+
+Textures: a mesh whose material has a base-colour texture (glTF's
+``baseColorTexture``, OBJ's ``map_Kd``) and whose vertices have UVs keeps both
+(``Mesh.uv``, ``Mesh.texture``: the image times the colour factor, as glTF
+multiplies them), beside the face colours above, so the textured algorithm
+draws the image and flat and lit its mean. An image that cannot be read leaves
+the factor alone, with a warning: a model with a broken texture still imports.
 """
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 
@@ -26,6 +34,8 @@ MESH_SUFFIXES = (".gltf", ".glb", ".obj", ".ply")
 
 # Proper rotation (det +1, windings kept): +y → +z, +z → −y.
 Y_UP_TO_Z_UP = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
+
+_log = logging.getLogger(__name__)
 
 # Node-name prefixes that say nothing about what the object is.
 _GENERIC = {"geometry", "mesh", "node", "object", "obj", "scene", "group", "default", "primitive"}
@@ -98,28 +108,62 @@ def _colour(mesh: Mesh, geom, cls: str) -> None:
     if kind == "face" and len(visual.face_colors) == mesh.n_faces:
         mesh.face_colours = np.ascontiguousarray(np.asarray(visual.face_colors)[:, :3], np.uint8)
         return
-    colour = _material_colour(getattr(visual, "material", None))
+    factor, image = _material_parts(getattr(visual, "material", None))
+    colour = _material_colour(factor, image)
     mesh.face_colours = np.tile(np.asarray(colour if colour is not None else class_colour(cls), np.uint8),
                                 (mesh.n_faces, 1))
+    uv = getattr(visual, "uv", None)
+    if image is not None and uv is not None:
+        uv = np.asarray(uv, np.float64)
+        if uv.shape == (mesh.n_vertices, 2) and np.isfinite(uv).all():
+            mesh.uv, mesh.texture = uv, _times(image, factor)
+        else:
+            _log.warning("%s: its UVs %s do not fit its %d vertices; drawn without its texture",
+                         cls, uv.shape, mesh.n_vertices)
 
 
-def _material_colour(material) -> tuple[int, int, int] | None:
-    """A material's colour: base colour factor (PBR) or diffuse (simple), times its texture's mean; None
-    for a material that sets neither."""
+def _material_parts(material) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """A material's colour factor (3,) float in [0, 1] — base colour factor (PBR) or diffuse (simple, OBJ's
+    Kd) — and its base-colour texture (h, w, 3) uint8 rows top-down; each None where it sets none.
+
+    The image is decoded here, once: pillow decodes lazily, and an image whose data is corrupt can fail
+    its first decode and then pass as a half-filled one. One that fails is logged and left out.
+    """
     if material is None:
-        return None
+        return None, None
     if hasattr(material, "baseColorFactor"):  # trimesh's PBR material (glTF): RGBA uint8
         factor, texture = material.baseColorFactor, getattr(material, "baseColorTexture", None)
     else:  # trimesh's simple material (OBJ's MTL)
         factor, texture = getattr(material, "diffuse", None), getattr(material, "image", None)
-    if factor is None and texture is None:
-        return None
-    rgb = np.ones(3) if factor is None else np.asarray(factor, np.float64).reshape(-1)[:3] / 255.0
+    if factor is not None:
+        factor = np.asarray(factor, np.float64).reshape(-1)[:3] / 255.0
+    image = None
     if texture is not None:
         try:
-            rgb = rgb * np.asarray(texture.convert("RGB"), np.float64).reshape(-1, 3).mean(axis=0) / 255.0
-        except (AttributeError, OSError, ValueError):
-            pass  # an unreadable texture leaves the factor
+            image = np.ascontiguousarray(np.asarray(texture.convert("RGB"), np.uint8))
+        except Exception as exc:  # pillow raises OSError, SyntaxError, zlib.error... on corrupt data
+            _log.warning("a base-colour texture cannot be read (%s: %s); its material's colour is used instead",
+                         type(exc).__name__, exc)
+        else:
+            if image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) < 1:
+                image = None
+    return factor, image
+
+
+def _times(image: np.ndarray, factor: np.ndarray | None) -> np.ndarray:
+    """The texture as drawn: (h, w, 3) uint8 image times the colour factor, as glTF multiplies them."""
+    if factor is None or (factor == 1.0).all():
+        return image
+    return np.clip(np.rint(image * factor), 0, 255).astype(np.uint8)
+
+
+def _material_colour(factor: np.ndarray | None, image: np.ndarray | None) -> tuple[int, int, int] | None:
+    """A material's colour: its factor times its texture's mean; None for a material that sets neither."""
+    if factor is None and image is None:
+        return None
+    rgb = np.ones(3) if factor is None else factor
+    if image is not None:
+        rgb = rgb * image.reshape(-1, 3).mean(axis=0) / 255.0
     r, g, b = (int(v) for v in np.rint(np.clip(rgb, 0.0, 1.0) * 255.0))
     return (r, g, b)
 
