@@ -55,6 +55,8 @@ class SceneIndex:
                        (metres; 0 at full detail, non-increasing with level)
         rep_bytes    : (m,) int32 — size of the geometry payload
         rep_morph    : (m,) bool — a morph map onto the previous level is stored
+        rep_texels   : (m,) int32 — width × height of the base-colour texture the payload carries,
+                       0 for none (and for every rep of a store built before it was recorded)
     Tree models (M of them), shared by ``trees`` objects:
         model_points : (M,) int32 — splats at full resolution
         model_radius : (M,) float32 — splat radius at full resolution (model space)
@@ -93,6 +95,11 @@ class SceneIndex:
     tour: list[dict]
     start: dict
     meta: dict
+    rep_texels: np.ndarray | None = None  # None: all zero (an index made without it)
+
+    def __post_init__(self) -> None:
+        if self.rep_texels is None:
+            self.rep_texels = np.zeros(self.rep_object.shape[0], np.int32)
 
     @property
     def n_objects(self) -> int:

@@ -19,8 +19,12 @@ Schema (version ``SCHEMA_VERSION``; ``PRAGMA application_id`` marks the file)::
             lo_x, lo_y, lo_z, hi_x, hi_y, hi_z REAL)    box of each object over all its levels
     representations(id INTEGER PRIMARY KEY, object INTEGER, level INTEGER, faces INTEGER,
                     vertices INTEGER, error REAL, bytes INTEGER, geometry BLOB,
-                    morph BLOB NULL)                    morph: ``proto.morph`` map of this level's
-                                                        vertices onto the previous level's
+                    morph BLOB NULL, texels INTEGER NULL)
+                                                        morph: ``proto.morph`` map of this level's
+                                                        vertices onto the previous level's; texels:
+                                                        width × height of the base-colour texture
+                                                        the payload carries (0 none; the column is
+                                                        absent from stores built before it: 0)
     models(id INTEGER PRIMARY KEY, name TEXT, points INTEGER, radius REAL,
            lo_x, lo_y, lo_z, hi_x, hi_y, hi_z REAL, geometry BLOB)
                                                         tree models as prefix-ordered point sets
@@ -67,7 +71,7 @@ TABLES = {
     "representations": (
         "CREATE TABLE representations (id INTEGER PRIMARY KEY, object INTEGER NOT NULL, "
         "level INTEGER NOT NULL, faces INTEGER NOT NULL, vertices INTEGER NOT NULL, "
-        "error REAL NOT NULL, bytes INTEGER NOT NULL, geometry BLOB NOT NULL, morph BLOB)"
+        "error REAL NOT NULL, bytes INTEGER NOT NULL, geometry BLOB NOT NULL, morph BLOB, texels INTEGER)"
     ),
     "models": (
         "CREATE TABLE models (id INTEGER PRIMARY KEY, name TEXT NOT NULL, points INTEGER NOT NULL, "
@@ -295,9 +299,13 @@ def _load_index(path: Path, conn: sqlite3.Connection) -> SceneIndex:
         obj = conn.execute(
             "SELECT id, class, kind, parent, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z FROM objects ORDER BY id"
         ).fetchall()
+        # The texels column came after schema version 2's first stores: a store without it reads as
+        # untextured (its textures still draw when asked for; the selection just does not prefer them),
+        # which keeps every older store open instead of asking for a rebuild.
+        has_texels = any(c[1] == "texels" for c in conn.execute("PRAGMA table_info(representations)"))
         rep = conn.execute(
-            "SELECT id, object, level, faces, vertices, error, bytes, morph IS NOT NULL "
-            "FROM representations ORDER BY id"
+            "SELECT id, object, level, faces, vertices, error, bytes, morph IS NOT NULL, "
+            + ("COALESCE(texels, 0)" if has_texels else "0") + " FROM representations ORDER BY id"
         ).fetchall()
         mod = conn.execute(
             "SELECT id, points, radius, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z FROM models ORDER BY id"
@@ -305,7 +313,7 @@ def _load_index(path: Path, conn: sqlite3.Connection) -> SceneIndex:
     except sqlite3.Error as exc:
         raise StoreError(f"{path}: corrupt: {exc}") from None
     o = np.array(obj, np.float64).reshape(-1, 10)
-    r = np.array(rep, np.float64).reshape(-1, 8)
+    r = np.array(rep, np.float64).reshape(-1, 9)
     md = np.array(mod, np.float64).reshape(-1, 9)
     if not np.array_equal(md[:, 0], np.arange(md.shape[0])):
         raise StoreError(f"{path}: corrupt: model ids are not 0..{md.shape[0] - 1}")
@@ -359,6 +367,7 @@ def _load_index(path: Path, conn: sqlite3.Connection) -> SceneIndex:
         rep_error=r[:, 5].astype(np.float32),
         rep_bytes=r[:, 6].astype(np.int32),
         rep_morph=r[:, 7].astype(bool),
+        rep_texels=r[:, 8].astype(np.int32),
         model_points=md[:, 1].astype(np.int32),
         model_radius=md[:, 2].astype(np.float32),
         model_lo=md[:, 3:6].astype(np.float32),

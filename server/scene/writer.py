@@ -145,10 +145,10 @@ class SceneWriter:
                     fidelity: Sequence[tuple[str, float, float, float] | None] | None = None) -> int:
         """Add one object whose levels are already encoded, coarsest → finest; returns its id.
 
-        For builders that encode in worker processes. Face and vertex counts
-        are read from triangle payloads (``proto.geometry``), so they are what
-        the client will draw; other payloads (a tree group's instance list)
-        pass ``counts`` as (vertices, faces) per level.
+        For builders that encode in worker processes. Face and vertex counts, and
+        the texels of a level's texture, are read from triangle payloads
+        (``proto.geometry``), so they are what the client will draw; other payloads
+        (a tree group's instance list, untextured) pass ``counts`` as (vertices, faces) per level.
         lo, hi : (3,) float — the object's box: it bounds the object's payloads and, in a hierarchy,
                  its whole subtree (so culling a node culls its descendants)
         kind   : one of ``MESH, HLOD, TERRAIN, TREES``
@@ -169,9 +169,12 @@ class SceneWriter:
         if morphs is not None and (len(morphs) != k or morphs[0] is not None):
             raise ValueError(f"object {name!r}: morphs must give one entry per level, None for level 0")
         if counts is None:
-            counts = [_payload_counts(b) for b in blobs]
+            heads = [_payload_counts(b) for b in blobs]
+            counts, texels = [h[:2] for h in heads], [h[2] for h in heads]
         elif len(counts) != k:
             raise ValueError(f"object {name!r}: {k} levels but {len(counts)} counts")
+        else:
+            texels = [0] * k
         morphs = morphs if morphs is not None else [None] * k
         cls_id = self._classes.setdefault(cls, len(self._classes))
         oid = self._n_objects
@@ -184,11 +187,12 @@ class SceneWriter:
                 (oid, name, cls_id, int(kind), int(parent), *map(float, lo), *map(float, hi)),
             )
             self._conn.executemany(
-                "INSERT INTO representations VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "INSERT INTO representations (id, object, level, faces, vertices, error, bytes, geometry, morph, "
+                "texels) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 [
                     (self._n_reps + i, oid, i, int(counts[i][1]), int(counts[i][0]), float(errors[i]),
                      len(blobs[i]), sqlite3.Binary(blobs[i]),
-                     None if morphs[i] is None else sqlite3.Binary(morphs[i]))
+                     None if morphs[i] is None else sqlite3.Binary(morphs[i]), int(texels[i]))
                     for i in range(k)
                 ],
             )
@@ -417,10 +421,10 @@ def _duration(keys: Sequence[Mapping[str, Any]]) -> float:
     return float(keys[-1]["t"] - keys[0]["t"]) if len(keys) >= 2 else 0.0
 
 
-def _payload_counts(blob: bytes) -> tuple[int, int]:
-    """(vertices, faces) from a geometry payload's header."""
+def _payload_counts(blob: bytes) -> tuple[int, int, int]:
+    """(vertices, faces, texels) from a geometry payload's header; texels: its texture's tw × th, 0 without one."""
     head = msgpack.unpackb(blob, raw=False)
-    return int(head["nv"]), int(head["nf"])
+    return int(head["nv"]), int(head["nf"]), int(head.get("tw", 0)) * int(head.get("th", 0))
 
 
 def _default_start(lo: np.ndarray, hi: np.ndarray) -> dict:

@@ -8,7 +8,10 @@ never reach 0, so a drawn object is always worth something and values stay
 finite). Accuracy is F&S's 1 − BaseError / Samples^m, with Samples and m set
 by the rendering algorithm, Zach's face-density ratio, or the screen-space
 error: each level's stored geometric error projected to pixels (as Cesium and
-Nanite select by it), 1 / (1 + error in pixels). Everything is arrays
+Nanite select by it), 1 / (1 + error in pixels). A representation that
+carries a base-colour texture loses accuracy when drawn by an algorithm that
+does not sample it (``texture_accuracy``): the same for every accuracy model,
+so the texture's detail counts whichever measures the shape. Everything is arrays
 over all candidate tuples at once: (n,) per object, (n, K) per option, where
 option k is level k // R with algorithm k % R (see ``solvers.candidates``).
 """
@@ -30,8 +33,11 @@ __all__ = [
     "ACCURACY_MODES",
     "DEFAULT_ACCURACY",
     "resolved_accuracy",
+    "UNTEXTURED_ACCURACY",
+    "TEXTURE_ALGORITHMS",
     "accuracy",
     "algorithm_accuracy",
+    "texture_accuracy",
     "zach_accuracy",
     "projected_error",
     "screen_error_accuracy",
@@ -55,6 +61,19 @@ ALGORITHM_EXPONENT = {"flat": 1.0, "lit": 2.0, "textured": 2.0}
 #: What F&S count as Samples(L, R): polygons for flat shading, vertices for
 #: Gouraud (lit, textured); never more than the pixels covered.
 ALGORITHM_SAMPLES = {"flat": "faces", "lit": "vertices", "textured": "vertices"}
+
+#: Accuracy of a textured representation drawn without its texture (flat, lit: its mean colour), against
+#: the same level drawn with it. The mean colour keeps the surface's shape and shading and loses the
+#: texture's detail, an error the image shows wherever the surface does; counting the shape and the
+#: detail as equal halves of what the image shows makes that half. At this value the texture wins per
+#: unit cost too (``cost.ALGORITHM_SCALE`` prices a textured vertex 1.2× a lit one), so with time to spare a
+#: textured surface is drawn textured, while a tight budget can still settle for a cheaper algorithm
+#: at a finer level. Untextured representations are untouched: the procedural pattern the textured
+#: algorithm draws on them is not their appearance.
+UNTEXTURED_ACCURACY = 0.5
+
+#: The rendering algorithms that sample a representation's own texture.
+TEXTURE_ALGORITHMS = frozenset({"textured"})
 
 #: ``BenefitFactors.accuracy`` values; "auto" lets the view choose (``resolved_accuracy``).
 ACCURACY_MODES = ("auto", "fs", "zach", "sse", "off")
@@ -103,6 +122,21 @@ def algorithm_accuracy(
         pixels = pixels[..., None]
     samples = np.minimum(samples, np.maximum(pixels, 1.0))
     return accuracy(samples, m[alg])
+
+
+def texture_accuracy(textured: np.ndarray, algorithms: int = 1, names: tuple[str, ...] = ALGORITHMS,
+                     untextured: float = UNTEXTURED_ACCURACY) -> np.ndarray:
+    """(n, K) float64 the accuracy left to each option by its algorithm's treatment of the texture.
+
+    textured : (n, K) bool — the option's representation carries a base-colour texture
+    algorithms : R; option k is drawn with ``names[k % R]``
+    ``untextured`` (``UNTEXTURED_ACCURACY``) where a textured representation is drawn by an algorithm
+    outside ``TEXTURE_ALGORITHMS``, 1 everywhere else.
+    """
+    textured = np.asarray(textured, bool)
+    samples = np.array([names[r] in TEXTURE_ALGORITHMS for r in range(algorithms)])
+    loses = textured & ~samples[np.arange(textured.shape[-1]) % algorithms]
+    return np.where(loses, float(untextured), 1.0)
 
 
 def zach_accuracy(screen_size: np.ndarray, faces: np.ndarray, original_faces: np.ndarray) -> np.ndarray:
@@ -325,6 +359,7 @@ def benefit_matrix(
     previous: np.ndarray | None = None,
     error: np.ndarray | None = None,
     extent: np.ndarray | None = None,
+    textured: np.ndarray | None = None,
 ) -> np.ndarray:
     """(n, K) float64 Benefit = Size · Accuracy · Importance · Focus · Motion · Hysteresis.
 
@@ -338,6 +373,8 @@ def benefit_matrix(
     speed : (n,) apparent screen speed, px/s — Motion (against each option's average polygon)
     previous : (n,) option drawn last time, −1 none — Hysteresis
     error, extent : (n, K) object-space geometric error of each option, (n,) box diagonal — "sse" accuracy
+    textured : (n, K) bool, the option's representation carries a texture — part of Accuracy
+        (``texture_accuracy``), with every accuracy model but "off"; None: nothing is textured
     A factor is skipped when switched off in ``factors`` or when its input is None; "auto" accuracy
     is F&S's here (the selection resolves it per view, ``resolved_accuracy``).
     """
@@ -359,6 +396,8 @@ def benefit_matrix(
         if error is None or extent is None:
             raise ValueError("screen-space error accuracy needs each option's error and the objects' extent")
         out *= screen_error_accuracy(projected_error(error, size, extent))
+    if factors.accuracy != "off" and textured is not None:
+        out *= texture_accuracy(textured, algorithms, factors.algorithm_names)
     if factors.importance and object_class is not None and importance_table is not None:
         out *= importance(object_class, importance_table)[:, None]
     if factors.focus and offset is not None:

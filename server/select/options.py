@@ -186,16 +186,18 @@ def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=
             raise ValueError("screen-space error accuracy needs the view's rep_error (Levels.subset of an index)")
         error = np.where(valid, lv.rep_error[rep], 0.0)
         extent = np.linalg.norm(lv.object_hi[rows].astype(np.float64) - lv.object_lo[rows], axis=1)
+    # Only a view holding textured representations pays for the texture's share of accuracy.
+    textured = (np.take(lv.rep_textured, rep) & valid) if getattr(lv, "rep_textured", None) is not None else None
     if kern is not None:
         benefit = benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass,
-                                 scene.importance, previous, original, error, extent)
+                                 scene.importance, previous, original, error, extent, textured)
     else:
         benefit = np.zeros(faces.shape)
         for j in range(len(cams)):
             benefit += weight[j] * benefit_matrix(
                 size[j], faces, algorithms=r, factors=factors, vertices=vertices, original_faces=original,
                 object_class=klass, importance_table=scene.importance, offset=offset[j], speed=speed[j],
-                previous=previous, error=error, extent=extent,
+                previous=previous, error=error, extent=extent, textured=textured,
             )
         benefit = np.where(valid, benefit, 0.0)
     sampled = np.array([cam.sampled for cam in cams])
@@ -241,13 +243,14 @@ def node_size(lv, rows: np.ndarray, size: np.ndarray) -> np.ndarray:
 
 
 def benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass, table, previous,
-                   original=None, error=None, extent=None):
+                   original=None, error=None, extent=None, textured=None):
     """``benefit_matrix`` summed over the cameras in one compiled pass (same factors, same arithmetic).
 
     original : (v,) Zach's #originalFaces (``benefit_matrix``'s ``original_faces``), None: each row's most faces
     error, extent : (v, K) geometric error per option and (v,) box diagonals, for "sse" accuracy
+    textured : (v, K) bool, the option's representation carries a texture (None: none does)
     """
-    from .benefit import ALGORITHM_SAMPLES, importance
+    from .benefit import ALGORITHM_SAMPLES, importance, texture_accuracy
 
     names = factors.algorithm_names
     if r < 1 or r > len(names):
@@ -271,10 +274,12 @@ def benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r,
     spd = np.stack([np.zeros(size.shape[1]) if s is None else s for s in speed]) if moving.any() else size
     prev = (np.asarray(previous, np.int64) if factors.hysteresis and previous is not None
             else np.zeros(0, np.int64))
+    appearance = (texture_accuracy(textured, r, names) if textured is not None and mode != kern.ACCURACY_OFF
+                  else empty2)
     out = np.empty(faces.shape)
     kern.benefit_sum(size, off, spd, moving, weight, faces, vertices, valid, per_vertex, exponent, r, mode, orig,
                      err, ext, factors.size, imp, factors.focus_strength, factors.motion_strength, factors.frame_time, prev,
-                     factors.level_weight, factors.algorithm_weight, out)
+                     factors.level_weight, factors.algorithm_weight, appearance, out)
     return out
 
 

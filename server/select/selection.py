@@ -53,6 +53,8 @@ class Levels:
     ids    : (n,) int64 scene object ids of these rows (None: 0..n−1)
     parent : (n,) int64 parent row within this view, −1 for roots (hierarchical view), or None
     rep_error : (m,) object-space geometric error of each representation (screen-space error accuracy), or None
+    rep_textured : (m,) bool — the representation carries a base-colour texture (``benefit.texture_accuracy``),
+        or None when none does (the benefit is then exactly the untextured one)
     """
 
     object_lo: np.ndarray
@@ -65,6 +67,7 @@ class Levels:
     ids: np.ndarray | None = None
     parent: np.ndarray | None = None
     rep_error: np.ndarray | None = None
+    rep_textured: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -82,7 +85,7 @@ class Levels:
         return cls(
             index.object_lo[rows], index.object_hi[rows], index.rep_first[rows], index.rep_count[rows],
             index.rep_faces, index.rep_vertices, index.object_class[rows].astype(np.int64), rows, parent,
-            rep_error=_errors(index),
+            rep_error=_errors(index), rep_textured=_textured(index),
         )
 
     @classmethod
@@ -122,6 +125,14 @@ def _errors(index) -> np.ndarray | None:
     without measuring them would make every level look as good as full detail)."""
     err = np.asarray(getattr(index, "rep_error", np.zeros(0)), np.float64)
     return err if err.size and bool((err > 0).any()) else None
+
+
+def _textured(index) -> np.ndarray | None:
+    """(m,) bool the index's representations that carry a texture, or None when none does (an index of a
+    store built before texels were recorded, or of a scene without textures)."""
+    texels = getattr(index, "rep_texels", None)
+    textured = np.asarray(texels if texels is not None else np.zeros(0)) > 0
+    return textured if bool(textured.any()) else None
 
 
 @dataclass(frozen=True)

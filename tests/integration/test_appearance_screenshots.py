@@ -8,7 +8,8 @@
 - a glTF box with a base colour factor: drawn in that colour;
 - a glTF box with a red/green checkerboard base-colour texture, drawn with the ``textured``
   algorithm: both checker colours alternate along a row of its pixels; the same box without
-  the texture shows the procedural pattern over its colour instead, and no checker.
+  the texture shows the procedural pattern over its colour instead, and no checker; and the
+  client offering every algorithm (its default) is sent the textured one for it.
 """
 
 from __future__ import annotations
@@ -236,27 +237,41 @@ def _checker_kinds(row: np.ndarray) -> np.ndarray:
     return np.where(red, 0, np.where(green, 1, -1))
 
 
+def _box_rows(server, store: Path, path: Path, algorithms: tuple[str, ...] | None) -> list[np.ndarray]:
+    """The box's pixels in each of the image's 20 centre rows, seen from above a corner."""
+    _, origin = _origin(store)
+    image = _shoot(server, store, np.array([7.0, -9.0, 6.0]) - origin, -origin, path, 4.0, sky=False,
+                   algorithms=algorithms)
+    background = np.round(np.asarray(BACKGROUND) * 255)
+    band = image[H // 2 - 10: H // 2 + 10]
+    on_box = np.abs(band - background).max(axis=2) > 2
+    assert on_box.mean(axis=1).min() > 0.1, f"{path.stem}: the box covers too little of the centre rows"
+    return [band[i][on_box[i]] for i in range(band.shape[0])]
+
+
+def _assert_checker(rows: list[np.ndarray]) -> None:
+    """Both checker colours on the box in every row, alternating along it: a checker, not two coloured faces."""
+    switches = []
+    for row in rows:
+        kinds = _checker_kinds(row)
+        assert (kinds == 0).mean() > 0.2 and (kinds == 1).mean() > 0.2, "not both checker colours in a row"
+        k = kinds[kinds >= 0]
+        switches.append(int(np.count_nonzero(np.diff(k))))
+    assert min(switches) >= 3
+
+
 def test_a_textured_gltf_draws_its_texture_and_an_untextured_one_the_procedural_pattern(server, stores,
                                                                                          tmp_path) -> None:
     """Drawn with the textured algorithm only: the checker box's pixels alternate red and green along a row;
     the grey box's (the same box without the texture) are its grey under the bricks, never the checker."""
-    rows = {}
-    for key in ("checker", "grey"):
-        _, origin = _origin(stores[key])
-        image = _shoot(server, stores[key], np.array([7.0, -9.0, 6.0]) - origin, -origin, tmp_path / f"{key}.png",
-                       4.0, sky=False, algorithms=("textured",))
-        background = np.round(np.asarray(BACKGROUND) * 255)
-        band = image[H // 2 - 10: H // 2 + 10]
-        on_box = np.abs(band - background).max(axis=2) > 2
-        assert on_box.mean(axis=1).min() > 0.1, f"{key}: the box covers too little of the centre rows"
-        rows[key] = [band[i][on_box[i]] for i in range(band.shape[0])]
-    switches = []
-    for row in rows["checker"]:
-        kinds = _checker_kinds(row)
-        assert (kinds == 0).mean() > 0.2 and (kinds == 1).mean() > 0.2  # both checker colours on the box
-        k = kinds[kinds >= 0]
-        switches.append(int(np.count_nonzero(np.diff(k))))
-    assert min(switches) >= 3  # alternating along every row: a checker, not two coloured faces
+    rows = {key: _box_rows(server, stores[key], tmp_path / f"{key}.png", ("textured",)) for key in ("checker", "grey")}
+    _assert_checker(rows["checker"])
     for row in rows["grey"]:
         assert (_checker_kinds(row) < 0).all()
         assert np.ptp(row.mean(axis=1)) > 5  # the procedural pattern, not a flat colour
+
+
+def test_the_client_offering_every_algorithm_draws_the_texture(server, stores, tmp_path) -> None:
+    """The normal client offers flat, lit and textured; with time to spare the selection draws the checker box
+    textured (drawn lit it would be the checker's mean colour, a plain brownish box)."""
+    _assert_checker(_box_rows(server, stores["checker"], tmp_path / "checker_all.png", None))

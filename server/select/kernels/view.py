@@ -229,7 +229,7 @@ def _pow(x, m):
 @jit()
 def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per_vertex, exponent, n_alg,
                 accuracy_mode, original, error, extent, use_size, importance, focus_strength, motion_strength, frame_time, previous,
-                level_weight, algorithm_weight, out):
+                level_weight, algorithm_weight, appearance, out):
     """out[i, k] = Σ_j weight[j] · Benefit_j(i, k) over valid options, 0 elsewhere (``benefit.benefit_matrix``).
 
     size, offset, speed : (C, v) per camera (speed in px/s); an empty ``offset`` (shape (0, 0)) switches
@@ -241,6 +241,8 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
     original : (v,) Zach's #originalFaces per row (``benefit.original_faces``); empty: each row's most faces
     error, extent : (v, K) geometric error per option, (v,) box diagonal per row — screen-space error
         accuracy (``benefit.projected_error``); empty otherwise
+    appearance : (v, K) the accuracy each option's algorithm leaves to a textured representation
+        (``benefit.texture_accuracy``); empty (0, 0): nothing is textured
     focus_strength, motion_strength : the factors' slopes (used only when their input is given)
     The factors multiply in ``benefit_matrix``'s order, so the sums are the same to the last bit; what
     does not depend on the camera (hysteresis weights, accuracy below the pixel cap) is computed once per row,
@@ -251,6 +253,7 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
     use_focus = offset.shape[0] > 0
     use_importance = importance.shape[0] > 0
     use_hysteresis = previous.shape[0] > 0
+    use_appearance = appearance.shape[0] > 0
     b = np.empty(kk)
     samples = np.empty(kk)
     acc = np.empty(kk)
@@ -296,7 +299,7 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                 edge = math.sqrt(max(polygon_px, 1.0))
                 mo = 1.0 / (1.0 + motion_strength * max(speed[j, i], 0.0) * frame_time / edge)
             for k in range(kk):
-                # benefit_matrix's order: Size, Accuracy, Importance, Focus, Motion.
+                # benefit_matrix's order: Size, Accuracy (the texture's share last), Importance, Focus, Motion.
                 x = 1.0
                 if use_size:
                     x *= s
@@ -308,6 +311,8 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                 elif accuracy_mode == ACCURACY_SSE:
                     px = max(np.float64(error[i, k]), 0.0) * (math.sqrt(2.0 * max(s, 0.0)) / max(extent[i], 1e-12))
                     x *= 1.0 / (1.0 + px)
+                if use_appearance:
+                    x *= appearance[i, k]
                 if use_importance:
                     x *= imp
                 if use_focus:
@@ -353,8 +358,8 @@ def compile_all() -> None:
         f = np.ones((2, 3), f_dtype)
         for moving in (np.ones(2, bool), np.zeros(2, bool)):
             benefit_sum(size, offset, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_FS, empty1, empty2, empty1,
-                        True, wh, 0.3, 0.5, 0.05, rows, 0.1, 0.1, out)
+                        True, wh, 0.3, 0.5, 0.05, rows, 0.1, 0.1, empty2, out)
             benefit_sum(size, empty2, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_ZACH, wh, empty2, empty1,
-                        True, empty1, 0.3, 0.5, 0.05, np.zeros(0, np.int64), 0.1, 0.1, out)
+                        True, empty1, 0.3, 0.5, 0.05, np.zeros(0, np.int64), 0.1, 0.1, empty2, out)
             benefit_sum(size, offset, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_SSE, empty1,
-                        np.ones((2, 3)), wh, True, wh, 0.3, 0.5, 0.05, rows, 0.1, 0.1, out)
+                        np.ones((2, 3)), wh, True, wh, 0.3, 0.5, 0.05, rows, 0.1, 0.1, np.ones((2, 3)), out)

@@ -86,6 +86,9 @@ def test_round_trip_index(written) -> None:
         for a in (idx.rep_first, idx.rep_count, idx.rep_object, idx.rep_faces, idx.rep_vertices, idx.rep_bytes):
             assert a.dtype == np.int32
         assert idx.rep_error.dtype == np.float32
+        # untextured payloads: no representation carries a texture
+        assert idx.rep_texels.dtype == np.int32 and idx.rep_texels.shape == idx.rep_faces.shape
+        assert not idx.rep_texels.any()
         assert store.object_names() == ["obj0", "obj1", "obj2"]
 
 

@@ -148,3 +148,27 @@ def test_a_textured_representations_bytes_count_its_png(wall_store) -> None:
             png = encode_texture(g.texture)
             assert fields["tx"] == png
             assert int(idx.rep_bytes[rep]) >= len(plain) + len(png)
+
+
+def test_the_store_records_each_levels_texels_and_an_older_store_reads_none(wall_store, tmp_path) -> None:
+    """The index knows which representations carry a texture (the selection prefers drawing it) without
+    decoding a payload: texels = the level's texture's width × height. A store built before the column
+    opens as before and reads as untextured."""
+    import sqlite3
+
+    with SceneStore.open(wall_store) as store:
+        idx = store.index
+        reps = list(range(idx.n_representations))
+        want = [0 if g.texture is None else g.texture.shape[0] * g.texture.shape[1]
+                for g in map(decode_geometry, store.geometries(reps))]
+        assert idx.rep_texels.dtype == np.int32
+        np.testing.assert_array_equal(idx.rep_texels, want)
+        assert (idx.rep_texels[idx.rep_first[0]: idx.rep_first[0] + idx.rep_count[0]] > 0).all()
+    old = tmp_path / "old.db"
+    old.write_bytes(wall_store.read_bytes())
+    with sqlite3.connect(old) as conn:
+        conn.execute("ALTER TABLE representations DROP COLUMN texels")
+    with SceneStore.open(old) as store:
+        assert store.index.n_representations == len(want)
+        np.testing.assert_array_equal(store.index.rep_texels, np.zeros(len(want), np.int32))
+        assert decode_geometry(store.geometry(0)).texture is not None  # its textures still travel
