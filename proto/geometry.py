@@ -316,15 +316,21 @@ def _colours(payload: dict, nv: int) -> np.ndarray | None:
     """The optional per-vertex colours: (nv, 3) uint8, or None when the payload has none."""
     if "cb" not in payload:
         return None
-    cb = _field(payload, "cb", bytes)
-    try:
-        rgba = meshoptimizer.decode_vertex_buffer(nv, 4, cb)
-    except Exception as exc:
-        raise ProtocolError("bad_geometry", f"geometry colour buffer does not decode: {exc}") from None
-    raw = np.ascontiguousarray(rgba).tobytes()
-    if len(raw) != 4 * nv:
-        raise ProtocolError("bad_geometry", f"geometry colour buffer holds {len(raw)} bytes, expected {4 * nv}")
+    raw = _four_bytes_a_vertex(payload, "cb", nv, "colour")
     return np.frombuffer(raw, np.uint8).reshape(nv, 4)[:, :3].copy()
+
+
+def _four_bytes_a_vertex(payload: dict, key: str, nv: int, what: str) -> bytes:
+    """The meshopt vertex buffer ``payload[key]`` of nv × 4 bytes, decoded; ProtocolError naming ``what``."""
+    buffer = _field(payload, key, bytes)
+    try:
+        decoded = meshoptimizer.decode_vertex_buffer(nv, 4, buffer)
+    except Exception as exc:
+        raise ProtocolError("bad_geometry", f"geometry {what} buffer does not decode: {exc}") from None
+    raw = np.ascontiguousarray(decoded).tobytes()
+    if len(raw) != 4 * nv:
+        raise ProtocolError("bad_geometry", f"geometry {what} buffer holds {len(raw)} bytes, expected {4 * nv}")
+    return raw
 
 
 def _texture(payload: dict, nv: int) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -335,17 +341,10 @@ def _texture(payload: dict, nv: int) -> tuple[np.ndarray | None, np.ndarray | No
     if len(present) == 1:
         raise ProtocolError("bad_geometry", f"geometry payload has '{present[0]}' without "
                                             f"'{({'tb', 'tx'} - set(present)).pop()}'")
-    tb = _field(payload, "tb", bytes)
     ulo, uext = _vec3(payload, "tlo", 2), _vec3(payload, "text", 2)
     if (uext <= 0).any():
         raise ProtocolError("bad_geometry", "geometry UV box extent must be positive")
-    try:
-        q = meshoptimizer.decode_vertex_buffer(nv, 4, tb)
-    except Exception as exc:
-        raise ProtocolError("bad_geometry", f"geometry UV buffer does not decode: {exc}") from None
-    raw = np.ascontiguousarray(q).tobytes()
-    if len(raw) != 4 * nv:
-        raise ProtocolError("bad_geometry", f"geometry UV buffer holds {len(raw)} bytes, expected {4 * nv}")
+    raw = _four_bytes_a_vertex(payload, "tb", nv, "UV")
     uv = (ulo + np.frombuffer(raw, np.uint16).reshape(nv, 2).astype(np.float64) * (uext / _QMAX)).astype(np.float32)
     texture = decode_texture(_field(payload, "tx", bytes), _field(payload, "tw", int), _field(payload, "th", int))
     return uv, texture
