@@ -49,7 +49,7 @@ import numpy as np
 from server.scene.palette import rgb8
 from server.scene.source import SourceError
 
-from .textures import TextureColours
+from .textures import TextureImages
 
 __all__ = ["FileAppearances", "Targets", "file_appearances"]
 
@@ -149,7 +149,7 @@ class FileAppearances:
 
     theme: str | None
     targets: Targets
-    images: TextureColours
+    images: TextureImages
     any: bool  # whether the file has appearances at all; False: nothing below needs a look
 
     def colours(self, ids: Sequence[Sequence[str]], semantic: list, local: Targets) -> list:
@@ -200,7 +200,7 @@ def file_appearances(path: Path) -> FileAppearances:
     Every top-level member is cleared when it ends, so memory holds one object at a time and the
     CityModel-level appearances. Malformed XML is left to the main pass to report with its position.
     """
-    images = TextureColours(path)
+    images = TextureImages(path)
     if not _mentions_appearances(path):
         return FileAppearances(None, Targets(), images, any=False)
     theme, seen, targets = None, False, Targets()
