@@ -99,7 +99,8 @@ def build_atlas(images: Sequence[np.ndarray], side: int = ATLAS_SIDE) -> Atlas:
     """Pack ``images`` ((h_i, w_i, 3) uint8 each) into one atlas at most ``side`` pixels a side.
 
     When they do not fit, every image is scaled by the same factor (box filter) until they do, so the
-    texel density stays even across the object's surfaces.
+    texel density stays even across the object's surfaces; ``ValueError`` when even at one pixel each
+    they do not.
     """
     if not images:
         raise ValueError("an atlas needs at least one image")
@@ -110,6 +111,8 @@ def build_atlas(images: Sequence[np.ndarray], side: int = ATLAS_SIDE) -> Atlas:
         layout = _layout(sizes, side)
         if layout is not None:
             break
+        if (sizes == 1).all():
+            raise ValueError(f"{len(images)} images do not fit an atlas {side} px a side")
         scale *= 0.8
     sizes, offsets, width, height = layout
     atlas = np.zeros((height, width, 3), np.uint8)
@@ -165,7 +168,10 @@ def object_texture(face_image: np.ndarray, face_uv: np.ndarray, face_group: np.n
     colours, patch = np.unique(np.asarray(face_colour, np.uint8).reshape(-1, 3)[~textured], axis=0,
                                return_inverse=True)
     pictures = [images[i] for i in used.tolist()] + [np.broadcast_to(c, (PATCH, PATCH, 3)) for c in colours]
-    atlas = build_atlas(pictures)
+    try:
+        atlas = build_atlas(pictures)
+    except ValueError:  # more images than an atlas holds: the object keeps its colours
+        return None
     items = np.empty(face_image.shape[0], np.int64)
     items[textured] = item
     items[~textured] = len(used) + patch.reshape(-1)

@@ -4,6 +4,7 @@ image's rectangle (repeating ones wrapped per polygon), colour patches, vertices
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -35,12 +36,12 @@ def _image(w: int, h: int, seed: int) -> np.ndarray:
 
 
 @settings(max_examples=30, deadline=None)
-@given(sizes, st.integers(0, 2 ** 16), st.integers(1, 2048), st.data())
+@given(sizes, st.integers(0, 2 ** 16), st.integers(64, 2048), st.data())
 def test_every_image_lands_in_the_atlas_and_uvs_stay_in_their_rectangle(wh, seed, side, data) -> None:
     images = [_image(w, h, seed + k) for k, (w, h) in enumerate(wh)]
-    atlas = build_atlas(images, side=max(side, 2 * GAP + 1))
+    atlas = build_atlas(images, side=side)
     H, W = atlas.image.shape[:2]
-    assert H <= max(side, 2 * GAP + 1) and W <= max(side, 2 * GAP + 1)
+    assert H <= side and W <= side
     r = atlas.rects
     padded = r + np.array([-GAP, -GAP, 2 * GAP, 2 * GAP])
     assert (padded[:, :2] >= 0).all() and (padded[:, 0] + padded[:, 2] <= W).all()
@@ -83,6 +84,11 @@ def test_too_many_images_are_scaled_down_together_to_fit() -> None:
     atlas = build_atlas(images)
     assert max(atlas.image.shape[:2]) <= ATLAS_SIDE
     assert len({(int(w), int(h)) for w, h in atlas.rects[:, 2:]}) == 1 and atlas.rects[0, 2] < 512
+
+
+def test_images_that_cannot_fit_even_at_one_pixel_are_refused() -> None:
+    with pytest.raises(ValueError, match="do not fit"):
+        build_atlas([_image(8, 8, k) for k in range(4)], side=2 * GAP + 1)
 
 
 def test_faces_without_an_image_point_at_a_patch_of_their_colour() -> None:
