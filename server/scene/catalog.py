@@ -37,8 +37,8 @@ __all__ = ["BUILD_VERSION", "SCENES", "build_named", "build_path", "is_named", "
 #: lacks — a new tour, colours an importer now reads — though the schema that holds it stays the
 #: same: every cache key carries it (``bench.stores.cache_key``), so a store cached by an older build
 #: is built anew instead of being reused. 2: the walk and flyover tours, CityGML appearances and
-#: textures as colours.
-BUILD_VERSION = 2
+#: textures as colours. 3: CityJSON and CityGML textures drawn as textures (per-object atlas).
+BUILD_VERSION = 3
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,9 @@ polygon takes the colour of the semantic surface it bounds (``RoofSurface``,
 its object's class colour where it bounds none — unless an appearance of the
 file's first theme targets it: then its texture's mean colour or its
 ``X3DMaterial`` 's ``diffuseColor`` (``server.scene.importers.citygml_appearance``
-says which wins, and why).
+says which wins, and why). A polygon whose ``ParameterizedTexture`` gives texture
+coordinates for its rings is also drawn with its image: each object's images go into
+one atlas (``server.scene.importers.atlas``), its vertices split where UVs differ.
 
 The file is read with ``iterparse`` and each top-level city object is
 cleared when done, so memory stays at one object; a file with appearances
@@ -49,7 +51,9 @@ from server.scene.palette import class_colour, surface_colour
 from server.scene.scans import TREE_MODEL_ATTRIBUTE
 from server.scene.source import Mesh, SourceError, SourceObject, SourceScene, TreeInstances, TreeModel
 
+from .atlas import object_texture, split_by_uv
 from .citygml_appearance import file_appearances
+from .textures import TextureImages
 
 __all__ = ["load_citygml"]
 
@@ -112,10 +116,13 @@ def _fan(polys: list[list[np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(faces).astype(np.int64), np.concatenate(owner).astype(np.int64)
 
 
-def _mesh(polys: list[list[np.ndarray]], tri, colours: list | None = None, cls: str = "") -> Mesh:
+def _mesh(polys: list[list[np.ndarray]], tri, colours: list | None = None, cls: str = "",
+          textures: list | None = None, images: TextureImages | None = None) -> Mesh:
     """One mesh from polygons (each a list of rings); exactly equal vertices are welded.
 
-    colours : per polygon, its RGB8 or None (then ``cls``'s colour); None: a mesh without colours
+    colours  : per polygon, its RGB8 or None (then ``cls``'s colour); None: a mesh without colours
+    textures : per polygon, (image reference, (k, 2) UVs of its ring points) or None
+               (``FileAppearances.textures``), read from ``images``; with colours only
     """
     if not polys:
         return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
@@ -139,16 +146,36 @@ def _mesh(polys: list[list[np.ndarray]], tri, colours: list | None = None, cls: 
         return Mesh(pos, f[keep])
     fallback = class_colour(cls)
     poly_colour = np.array([fallback if c is None else c for c in colours], np.uint8).reshape(-1, 3)
-    return Mesh(pos, f[keep], face_colours=poly_colour[owner[keep]])
+    face_colours = poly_colour[owner[keep]]
+    if textures is None or images is None or not any(t is not None for t in textures):
+        return Mesh(pos, f[keep], face_colours=face_colours)
+    uris = sorted({t[0] for t in textures if t is not None})
+    corner_uv = np.full((pts.shape[0], 2), np.nan)  # (N, 2) per ring point, NaN where untextured
+    poly_image = np.full(len(polys), -1, np.int64)
+    n = 0
+    for i, (rings, t) in enumerate(zip(polys, textures)):
+        k = sum(len(r) for r in rings)
+        if t is not None:
+            corner_uv[n:n + k] = t[1]
+            poly_image[i] = uris.index(t[0])
+        n += k
+    kept = faces[keep]
+    made = object_texture(poly_image[owner[keep]], corner_uv[kept], owner[keep], face_colours,
+                          [images.image(u) for u in uris])
+    if made is None:
+        return Mesh(pos, f[keep], face_colours=face_colours)
+    source, split, uv = split_by_uv(f[keep], made[1])
+    return Mesh(pos[source], split, face_colours=face_colours, uv=uv, texture=made[0])
 
 
 def _polygons(elem: ET.Element, path, owner: str, stop=(), colours: list | None = None,
-              ids: list | None = None) -> list[list[np.ndarray]]:
+              ids: list | None = None, ring_ids: list | None = None) -> list[list[np.ndarray]]:
     """Every gml:Polygon below ``elem`` as rings, not descending into ``stop`` elements or ClosureSurfaces.
 
     colours : when given, receives each polygon's semantic surface colour (None where it bounds none)
     ids     : when given, receives each polygon's gml:ids an appearance may target: its own, its rings',
               then those of the elements around it below ``elem``, nearest first
+    ring_ids : when given, receives each polygon's rings' gml:ids (None where a ring has none)
     """
     out = []
 
@@ -169,6 +196,8 @@ def _polygons(elem: ET.Element, path, owner: str, stop=(), colours: list | None 
                     if ids is not None:
                         own = [x for x in (c.get(_GML_ID), *(r.get(_GML_ID) for r in boundary)) if x]
                         ids.append(own + around)
+                    if ring_ids is not None:
+                        ring_ids.append([r.get(_GML_ID) for r in boundary])
             else:
                 gid = c.get(_GML_ID)
                 walk(c, surface_colour(name) or colour, [gid, *around] if ids is not None and gid else around)
@@ -225,21 +254,15 @@ def load_citygml(path) -> SourceScene:
             elif name == "Building":
                 bid = e.get(_GML_ID) or f"building{len(objects) + 1}"
                 local = appearances.of_object(e, path, f"building {bid}")
-                colours: list = []
-                ids: list | None = [] if appearances.any else None
-                own = _polygons(e, path, f"building {bid}", stop=("BuildingPart",), colours=colours, ids=ids)
-                if own:
-                    colours = appearances.colours(ids, colours, local) if ids is not None else colours
-                    objects.append(SourceObject(bid, "building", [_mesh(own, tri, colours, "building")], {"id": bid}))
+                own = _building_mesh(e, path, f"building {bid}", ("BuildingPart",), appearances, local, tri)
+                if own is not None:
+                    objects.append(SourceObject(bid, "building", [own], {"id": bid}))
                 for part in e.iter():
                     if _local(part.tag) == "BuildingPart":
                         pid = part.get(_GML_ID) or f"{bid}-part{len(objects) + 1}"
-                        colours, ids = [], [] if appearances.any else None
-                        polys = _polygons(part, path, f"building part {pid}", colours=colours, ids=ids)
-                        if polys:
-                            colours = appearances.colours(ids, colours, local) if ids is not None else colours
-                            objects.append(SourceObject(pid, "buildingpart", [_mesh(polys, tri, colours, "building")],
-                                                        {"id": pid, "building": bid}))
+                        mesh = _building_mesh(part, path, f"building part {pid}", (), appearances, local, tri)
+                        if mesh is not None:
+                            objects.append(SourceObject(pid, "buildingpart", [mesh], {"id": pid, "building": bid}))
                 e.clear()
             elif name == "cityObjectMember":
                 e.clear()
@@ -269,6 +292,22 @@ def load_citygml(path) -> SourceScene:
     if crs and "EPSG" in crs.upper():
         crs = "EPSG:" + crs.replace("::", ":").rsplit(":", 1)[-1]
     return SourceScene(objects=objects, tree_models=models, trees=instances, crs=crs, sources=[str(path)])
+
+
+def _building_mesh(e: ET.Element, path, where: str, stop: tuple, appearances, local, tri) -> Mesh | None:
+    """A building's (or part's) own polygons as one coloured mesh, textured where its appearances say; None
+    if it has none."""
+    colours: list = []
+    ids: list | None = [] if appearances.any else None
+    ring_ids: list | None = [] if appearances.any else None
+    polys = _polygons(e, path, where, stop=stop, colours=colours, ids=ids, ring_ids=ring_ids)
+    if not polys:
+        return None
+    textures = None
+    if ids is not None:
+        colours = appearances.colours(ids, colours, local)
+        textures = appearances.textures(ids, ring_ids, [[len(r) for r in rings] for rings in polys], local)
+    return _mesh(polys, tri, colours, "building", textures, appearances.images)
 
 
 def _tree(e, path, i, protos, proto_order, trees, objects, tri) -> None:

@@ -17,6 +17,14 @@ thematic one); only the first theme the file names, in document order, is drawn
 (an appearance without ``app:theme`` belongs to the unnamed theme) — as the
 CityJSON importer draws its geometries' first material theme.
 
+**Texture coordinates.** A ``ParameterizedTexture`` 's ``app:TexCoordList`` gives,
+per ring (``ring="#ringId"``), u v pairs in ring order with the closing point
+repeated (v = 0 at the image's bottom). A polygon is drawn with its image when every
+one of its rings has coordinates from the same texture, one pair per ring point
+(``FileAppearances.textures``); else — a count that does not match, a ring left out —
+it keeps its colour, warned once per file. The CityGML importer packs an object's
+images into one atlas (``server.scene.importers.atlas``).
+
 **What colours a polygon.** Its texture's mean colour
 (``server.scene.importers.textures``), else its material's ``diffuseColor``,
 else its semantic surface's colour. The spec lets a surface carry both per theme
@@ -38,6 +46,7 @@ images mapped by position) are not read.
 
 from __future__ import annotations
 
+import logging
 import mmap
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
@@ -49,9 +58,11 @@ import numpy as np
 from server.scene.palette import rgb8
 from server.scene.source import SourceError
 
-from .textures import TextureColours
+from .textures import TextureImages
 
 __all__ = ["FileAppearances", "Targets", "file_appearances"]
+
+log = logging.getLogger(__name__)
 
 _GML_ID = "{http://www.opengis.net/gml}id"
 
@@ -78,10 +89,12 @@ def _id(ref: str | None) -> str:
 
 @dataclass
 class Targets:
-    """The surface data of one theme that target polygons: gml:id → RGB8 material, gml:id → image reference."""
+    """The surface data of one theme that target polygons: gml:id → RGB8 material, gml:id → image reference,
+    ring gml:id → (image reference, (k, 2) float64 texture coordinates in ring order)."""
 
     materials: dict[str, RGB] = field(default_factory=dict)
     textures: dict[str, str] = field(default_factory=dict)
+    coords: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
 
     def __bool__(self) -> bool:
         return bool(self.materials or self.textures)
@@ -116,7 +129,21 @@ class Targets:
                             self.textures[_id(t.get("uri"))] = image
                         for coords in t.iter():
                             if _local(coords.tag) == "textureCoordinates" and _id(coords.get("ring")):
-                                self.textures[_id(coords.get("ring"))] = image
+                                ring = _id(coords.get("ring"))
+                                self.textures[ring] = image
+                                self.coords[ring] = (image, _pairs(coords.text, path, f"{name}, ring {ring}"))
+
+
+def _pairs(text: str | None, path: Path, where: str) -> np.ndarray:
+    """``textureCoordinates`` text as (k, 2) float64 u v pairs; ``SourceError`` naming ``where`` if it is not."""
+    try:
+        v = np.array((text or "").split(), np.float64)
+    except ValueError:
+        v = None
+    if v is None or v.size % 2 or not np.isfinite(v).all():
+        raise SourceError(f"{path}: {where}: textureCoordinates {(text or '').strip()[:60]!r} "
+                          "are not u v pairs of finite numbers")
+    return v.reshape(-1, 2)
 
 
 def _front(data: ET.Element, path: Path, where: str) -> bool:
@@ -149,8 +176,9 @@ class FileAppearances:
 
     theme: str | None
     targets: Targets
-    images: TextureColours
+    images: TextureImages
     any: bool  # whether the file has appearances at all; False: nothing below needs a look
+    _warned: bool = False  # a polygon's coordinates did not fit its rings (warned once per file)
 
     def colours(self, ids: Sequence[Sequence[str]], semantic: list, local: Targets) -> list:
         """Each polygon's colour: texture, else material, else its ``semantic`` one (RGB8 or None).
@@ -171,6 +199,43 @@ class FileAppearances:
                 colour = next((t.materials[n] for n in names for t in layers if n in t.materials), None)
             if colour is not None:
                 out[i] = colour
+        return out
+
+    def textures(self, ids: Sequence[Sequence[str]], ring_ids: Sequence[Sequence[str | None]],
+                 ring_sizes: Sequence[Sequence[int]], local: Targets) -> list:
+        """Each polygon's (image reference, (k, 2) float64 UVs of its ring points, rings concatenated), or None.
+
+        ids        : as ``colours``
+        ring_ids   : per polygon, the gml:id of each ring (None where it has none)
+        ring_sizes : per polygon, each ring's point count, its closing point not repeated
+        A polygon is textured when its image is readable and each ring has coordinates of that image, one
+        pair per point (the closing pair, repeated in the file, dropped); else None (module docstring).
+        """
+        out: list = [None] * len(ids)
+        layers = [t for t in (local, self.targets) if t.coords]
+        if not layers:
+            return out
+        for i, names in enumerate(ids):
+            image = next((t.textures[n] for n in names for t in (local, self.targets) if n in t.textures), None)
+            if image is None:
+                continue
+            parts = []
+            for ring, k in zip(ring_ids[i], ring_sizes[i]):
+                found = next((t.coords[ring] for t in layers if ring in t.coords), None) if ring else None
+                uv = found[1] if found is not None and found[0] == image else None
+                if uv is not None and len(uv) == k + 1:
+                    uv = uv[:k]
+                if uv is None or len(uv) != k:
+                    if not self._warned:
+                        self._warned = True
+                        log.warning("%s: polygon %s: ring %s has %s texture coordinates for its %d points; "
+                                    "such polygons keep their colour", self.images.source, names[0] if names else "?",
+                                    ring, "no" if uv is None else len(uv), k)
+                    break
+                parts.append(uv)
+            else:
+                if self.images.image(image) is not None:
+                    out[i] = (image, np.concatenate(parts))
         return out
 
     def of_object(self, obj: ET.Element, path: Path, where: str) -> Targets:
@@ -200,7 +265,7 @@ def file_appearances(path: Path) -> FileAppearances:
     Every top-level member is cleared when it ends, so memory holds one object at a time and the
     CityModel-level appearances. Malformed XML is left to the main pass to report with its position.
     """
-    images = TextureColours(path)
+    images = TextureImages(path)
     if not _mentions_appearances(path):
         return FileAppearances(None, Targets(), images, any=False)
     theme, seen, targets = None, False, Targets()

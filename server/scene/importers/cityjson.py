@@ -8,8 +8,19 @@ its semantic type's, else its object's IFC or class colour (``server.scene.palet
 The texture wins over the material for the reason the CityGML importer gives
 (``citygml_appearance``): the texture is the surface's measurement, the material its
 constant approximation; a texture whose image cannot be read (warned once per image)
-leaves the material or semantic colour. All polygons of the file are triangulated in one
-vectorised pass (polygons.py); each level then gets a compact vertex array of its own.
+leaves the material or semantic colour.
+
+**Textures drawn.** A textured ring's values ``[t, i0, i1, ...]`` give, per ring vertex, an
+index into ``appearance["vertices-texture"]`` (u, v pairs, v = 0 at the image's bottom).
+Those UVs ride on each ring corner through the triangulation, and an object with a
+readable texture gets one atlas of its images and per-vertex UVs in it on every level
+that has a textured face (``server.scene.importers.atlas``: repeating UVs are wrapped per
+polygon and clamped; surfaces without an image get a patch of their colour), its
+vertices split where their corners' UVs differ. Geometry instances are not textured.
+
+All polygons of the file are triangulated in one vectorised pass (polygons.py), by ring
+corner, so a face knows its corners' UVs; each level then gets a compact vertex array of
+its own.
 The whole file is validated before anything is returned, so a malformed file never
 yields a partial scene.
 """
@@ -26,7 +37,8 @@ import numpy as np
 from ..palette import class_colour, ifc_colour, rgb8, surface_colour
 from ..source import Mesh, SourceError, SourceObject, SourceScene
 from .polygons import Rings, flatten_polygons, triangulate_rings
-from .textures import TextureColours
+from .atlas import object_texture, split_by_uv
+from .textures import TextureImages
 
 __all__ = ["SUPPORTED_VERSIONS", "load_cityjson", "normalise_crs"]
 
@@ -46,7 +58,8 @@ def load_cityjson(path: str | Path) -> SourceScene:
     city_objects = doc.get("CityObjects")
     if not isinstance(city_objects, dict):
         raise SourceError(f"{path}: 'CityObjects' is missing or not an object")
-    walk = _Walk(path, vertices, doc.get("geometry-templates"), _materials(path, doc), _textures(path, doc))
+    walk = _Walk(path, vertices, doc.get("geometry-templates"), _materials(path, doc), _textures(path, doc),
+                 _texture_vertices(path, doc))
     for oid, obj in city_objects.items():
         walk.add_object(str(oid), obj)
     objects = walk.build()
@@ -177,6 +190,21 @@ def _textures(path: Path, doc: dict) -> list[str]:
     return out
 
 
+def _texture_vertices(path: Path, doc: dict) -> np.ndarray:
+    """``appearance["vertices-texture"]`` as (k, 2) float64; the first entry that is not two numbers is named."""
+    appearance = doc.get("appearance")
+    rows = appearance.get("vertices-texture") if isinstance(appearance, dict) else None
+    if rows is None:
+        return np.zeros((0, 2))
+    if not isinstance(rows, list):
+        raise SourceError(f"{path}: appearance.vertices-texture is not a list")
+    for i, row in enumerate(rows):
+        if not (isinstance(row, list) and len(row) == 2
+                and all(isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in row)):
+            raise SourceError(f"{path}: appearance.vertices-texture[{i}] = {row!r} is not two finite numbers")
+    return np.asarray(rows, np.float64).reshape(-1, 2)
+
+
 def _flat_values(values, depth: int) -> list:
     """A semantics or material ``values`` array flattened to one entry per polygon (None where absent)."""
     level = values if isinstance(values, list) else []
@@ -197,12 +225,15 @@ class _Walk:
     """Collects every surface of every object, then triangulates them all at once."""
 
     def __init__(self, path: Path, vertices: np.ndarray, templates, materials: list | None = None,
-                 textures: list | None = None) -> None:
+                 textures: list | None = None, texture_vertices: np.ndarray | None = None) -> None:
         self.path = path
         self.materials = materials or []
         self.textures = textures or []  # image path per texture
-        self.images = TextureColours(path)  # their mean colours, each image read once
+        self.uv = np.zeros((0, 2)) if texture_vertices is None else texture_vertices  # (k, 2) vertices-texture
+        self.images = TextureImages(path)  # their mean colours and pixels
         self.poly_colour: list = []  # RGB8 of each polygon in ``polygons``
+        self.poly_texture: list[int] = []  # texture of each polygon in ``polygons``, -1 for none
+        self.corner_uv: list = []  # per ring corner of ``polygons``, in order: its vertices-texture index or -1
         self.instance_colour: list = []  # RGB8 of each instance's polygons
         self.vertices = vertices
         self.extra: list[np.ndarray] = []  # placed template vertices, appended after ``vertices``
@@ -253,6 +284,7 @@ class _Walk:
         slot = self._slot(number, geom.get("lod"))
         colours = self._colours(geom, _DEPTH[gtype], len(kept), info["colour"])
         self.poly_colour.extend(colours[i] for i in kept)
+        self._texture_rings(geom, _DEPTH[gtype], kept, polys, where)
         self.polygons.extend(polys)
         self.poly_slot.extend([slot] * len(polys))
         self.geoms.append((oid, g, len(polys)))
@@ -290,6 +322,35 @@ class _Walk:
                 if colour is not None:
                     out[i] = colour
         return out
+
+    def _texture_rings(self, geom: dict, depth: int, kept: list[int], polys: list, where: str) -> None:
+        """Record each kept polygon's texture (the first theme's) and its ring corners' UV indices.
+
+        A polygon is textured by its outer ring's texture; a ring given as ``[null]`` has no UVs, and the
+        faces touching its corners are drawn in their colour. A textured ring must list one UV index per
+        ring vertex, each in range of ``vertices-texture``.
+        """
+        themes = geom.get("texture")
+        theme = next(iter(themes.values())) if isinstance(themes, dict) and themes else None
+        values = _flat_values(theme.get("values"), depth) if isinstance(theme, dict) and self.textures else []
+        for k, i in enumerate(kept):
+            rings = values[i] if i < len(values) and isinstance(values[i], list) else []
+            texture = -1
+            for r, ring in enumerate(polys[k]):
+                tex = rings[r] if r < len(rings) and isinstance(rings[r], list) else None
+                if not tex or not isinstance(tex[0], int) or not 0 <= tex[0] < len(self.textures):
+                    self.corner_uv.extend([-1] * len(ring))
+                    continue
+                uv = tex[1:]
+                if len(uv) != len(ring) or not all(isinstance(j, int) and not isinstance(j, bool)
+                                                   and 0 <= j < len(self.uv) for j in uv):
+                    raise SourceError(f"{self.path}: {where}: texture values of polygon {i} ring {r} = {tex!r} "
+                                      f"are not a texture and {len(ring)} indices into vertices-texture "
+                                      f"(0..{len(self.uv) - 1})")
+                self.corner_uv.extend(uv)
+                if r == 0:
+                    texture = tex[0]
+            self.poly_texture.append(texture)
 
     def _surfaces(self, boundaries, depth: int, where: str, keep: bool = False):
         """The polygons (lists of rings) under ``depth`` list levels of boundaries (with ``keep``: and the
@@ -368,19 +429,41 @@ class _Walk:
         poly_slot = np.asarray(self.poly_slot + [s for r, s in self.instance_rings for _ in range(r.n_polygons)],
                                np.int64)
         poly_colour = np.asarray(self.poly_colour + self.instance_colour, np.uint8).reshape(-1, 3)
-        faces, owner = triangulate_rings(vertices, rings)
+        # Triangulated by ring corner, so each face knows its corners' UVs as well as their vertices.
+        corners, owner = triangulate_rings(vertices[rings.index],
+                                           Rings(np.arange(rings.index.size), rings.length, rings.outer))
+        n_instance = rings.index.size - len(self.corner_uv)
+        uv_index = np.asarray(self.corner_uv + [-1] * n_instance, np.int64)
+        poly_texture = np.asarray(self.poly_texture + [-1] * (poly_slot.size - len(self.poly_texture)), np.int64)
         face_slot = poly_slot[owner]
         order = np.argsort(face_slot, kind="stable")
-        faces, face_slot, face_colour = faces[order], face_slot[order], poly_colour[owner][order]
+        corners, owner, face_slot = corners[order], owner[order], face_slot[order]
+        faces, face_colour = rings.index[corners], poly_colour[owner]
+        corner_uv = np.full((uv_index.size, 2), np.nan)  # (N, 2): NaN where a corner has no UV
+        corner_uv[uv_index >= 0] = self.uv[uv_index[uv_index >= 0]]
         bounds = np.searchsorted(face_slot, np.arange(len(self.slots) + 1))
+        slots_of: dict[int, list[int]] = {}
+        for s, (number, _) in enumerate(self.slots):
+            if bounds[s + 1] > bounds[s]:
+                slots_of.setdefault(number, []).append(s)
         levels: dict[int, list[tuple[str, Mesh]]] = {}
-        for s, (number, lod) in enumerate(self.slots):
-            f = faces[bounds[s]:bounds[s + 1]]
-            if f.shape[0] == 0:
-                continue
-            used, inverse = np.unique(f, return_inverse=True)
-            levels.setdefault(number, []).append(
-                (lod, Mesh(vertices[used], inverse.reshape(-1, 3), face_colours=face_colour[bounds[s]:bounds[s + 1]])))
+        for number, slots in slots_of.items():
+            span = np.concatenate([np.arange(bounds[s], bounds[s + 1]) for s in slots])
+            textured = self._object_texture(poly_texture[owner[span]], corner_uv[corners[span]], owner[span],
+                                            face_colour[span])
+            at = 0
+            for s in slots:
+                a, b = bounds[s], bounds[s + 1]
+                f, colours = faces[a:b], face_colour[a:b]
+                uv = None if textured is None else textured[1][at:at + b - a]
+                at += b - a
+                if uv is None or (poly_texture[owner[a:b]] < 0).all():
+                    used, inverse = np.unique(f, return_inverse=True)
+                    mesh = Mesh(vertices[used], inverse.reshape(-1, 3), face_colours=colours)
+                else:
+                    source, split, vertex_uv = split_by_uv(f, uv)
+                    mesh = Mesh(vertices[source], split, face_colours=colours, uv=vertex_uv, texture=textured[0])
+                levels.setdefault(number, []).append((self.slots[s][1], mesh))
         out = []
         for number, info in enumerate(self.objects):
             if number not in levels:
@@ -395,6 +478,20 @@ class _Walk:
                 attrs["notes"] = info["notes"]
             out.append(SourceObject(info["id"], info["cls"], [m for _, m in chain], attrs))
         return out
+
+    def _object_texture(self, face_texture: np.ndarray, face_uv: np.ndarray, face_polygon: np.ndarray,
+                        face_colour: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """One object's atlas and its faces' UVs in it (``atlas.object_texture``), or None if it shows no image.
+
+        face_texture : (m,) int texture of each face, −1 none; face_uv : (m, 3, 2) float; face_polygon : (m,)
+        int; face_colour : (m, 3) uint8
+        """
+        if not (face_texture >= 0).any():
+            return None
+        used, image_of = np.unique(face_texture, return_inverse=True)
+        images = [None if t < 0 else self.images.image(self.textures[t]) for t in used.tolist()]
+        face_image = np.where(face_texture >= 0, image_of.reshape(-1), -1)
+        return object_texture(face_image, face_uv, face_polygon, face_colour, images)
 
     def _flatten(self) -> Rings:
         """All polygons as one Rings, every index checked against the vertex count."""

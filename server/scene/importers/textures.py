@@ -1,11 +1,17 @@
-"""Texture images as one colour each: the mean of the image's pixels, until textures are drawn.
+"""Texture images of CityGML (``ParameterizedTexture``) and CityJSON (``appearance.textures``): pixels and mean colour.
 
-The payload carries one colour per face (``server.scene.colours``), so a textured
-surface of CityGML (``ParameterizedTexture``) or CityJSON (``appearance.textures``)
-is drawn in its image's mean colour — a façade photograph becomes the colour one
-sees from across the street, which is what a city read from afar shows. Pixels are
-weighted by their alpha, so the transparent padding of a texture atlas does not
-grey the mean.
+A textured surface is drawn with its image (``server.scene.importers.atlas`` packs an
+object's images into one atlas), and its face colour — what the flat and lit
+algorithms draw — is the image's mean colour: a façade photograph becomes the colour
+one sees from across the street, which is what a city read from afar shows. Pixels are
+weighted by their alpha, so the transparent padding of a texture atlas does not grey
+the mean; the image handed out has its transparent pixels filled with that mean, for
+the same reason.
+
+Images are read at most ``IMAGE_SIDE`` pixels a side (a façade photograph is larger
+than a level's texture ever is), and only the last few decoded ones are kept: a city
+names thousands of images, each used by one or a few buildings, and a city's worth of
+pixels would not fit in memory. Mean colours are kept for every image.
 
 An image that is missing, remote or unreadable is not an error: the file still
 builds and those surfaces keep their semantic colour. It is logged once per image
@@ -15,19 +21,24 @@ builds and those surfaces keep their semantic colour. It is logged once per imag
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-__all__ = ["TextureColours", "mean_colour"]
+__all__ = ["IMAGE_SIDE", "TextureImages", "mean_colour"]
 
 log = logging.getLogger(__name__)
 
 # Larger images are box-reduced to about this many pixels a side first: the mean barely
 # moves, and a city's worth of façade photographs would otherwise be decoded at full size.
 _SIDE = 256
+#: The largest side of an image as it is handed to the atlas.
+IMAGE_SIDE = 512
+# Decoded images kept for reuse: an object's images are usually its own, so a few suffice.
+_KEEP = 16
 
 
 def mean_colour(image: Image.Image) -> tuple[int, int, int]:
@@ -48,8 +59,8 @@ def mean_colour(image: Image.Image) -> tuple[int, int, int]:
     return r, g, b
 
 
-class TextureColours:
-    """Image references of one source file → their mean colours, each image read once.
+class TextureImages:
+    """Image references of one source file → their pixels and mean colours, each image's colour read once.
 
     source : the file whose image references these are; relative ones are resolved against its folder
     """
@@ -57,14 +68,36 @@ class TextureColours:
     def __init__(self, source: Path) -> None:
         self.source = Path(source)
         self._colour: dict[str, tuple[int, int, int] | None] = {}
+        self._pixels: OrderedDict[str, np.ndarray] = OrderedDict()
 
     def colour(self, uri: str) -> tuple[int, int, int] | None:
         """The mean RGB8 of the image ``uri`` names, or None (warned once) if it cannot be read."""
         if uri not in self._colour:
-            self._colour[uri] = self._read(uri)
+            self._load(uri)
         return self._colour[uri]
 
-    def _read(self, uri: str) -> tuple[int, int, int] | None:
+    def image(self, uri: str) -> np.ndarray | None:
+        """The image ``uri`` names as (h, w, 3) uint8 rows top-down, at most ``IMAGE_SIDE`` a side, transparent
+        pixels filled with its mean colour; None (warned once) if it cannot be read."""
+        if uri in self._pixels:
+            self._pixels.move_to_end(uri)
+            return self._pixels[uri]
+        if uri in self._colour and self._colour[uri] is None:
+            return None
+        return self._load(uri)
+
+    def _load(self, uri: str) -> np.ndarray | None:
+        read = self._read(uri)
+        if read is None:
+            self._colour[uri] = None
+            return None
+        self._colour[uri], pixels = read
+        self._pixels[uri] = pixels
+        while len(self._pixels) > _KEEP:
+            self._pixels.popitem(last=False)
+        return pixels
+
+    def _read(self, uri: str) -> tuple[tuple[int, int, int], np.ndarray] | None:
         path = self._local(uri)
         if path is None:
             log.warning("%s: texture %r is not a local file; its surfaces keep their semantic colours",
@@ -72,8 +105,14 @@ class TextureColours:
             return None
         try:
             with Image.open(path) as image:
-                image.draft("RGB", (_SIDE, _SIDE))  # a JPEG decodes at a reduced scale, cheaply
-                return mean_colour(image)
+                image.draft("RGB", (IMAGE_SIDE, IMAGE_SIDE))  # a JPEG decodes at a reduced scale, cheaply
+                image = image.convert("RGBA")
+                image.thumbnail((IMAGE_SIDE, IMAGE_SIDE), Image.Resampling.BOX)
+                colour = mean_colour(image)
+                rgba = np.asarray(image, np.uint8)
+                rgb = rgba[:, :, :3].copy()
+                rgb[rgba[:, :, 3] == 0] = colour
+                return colour, rgb
         except FileNotFoundError:
             reason = "no such file"
         except (OSError, UnidentifiedImageError, ValueError, Image.DecompressionBombError) as exc:
