@@ -37,7 +37,7 @@ def test_replay_scores_the_online_model_held_out_against_zach_and_the_last_frame
 
 def test_bench_render_command_prints_its_figures_and_json(auditorium_store):
     cmd = [sys.executable, "-m", "walkstream", "bench", "render", "--quick", "--store", str(auditorium_store),
-           "--duration", "5", "--json"]
+           "--duration", "8", "--json"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
