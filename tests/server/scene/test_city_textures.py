@@ -218,3 +218,17 @@ def test_citygml_coordinates_that_do_not_fit_the_ring_leave_the_mean_colour(tmp_
     (mesh,) = obj.levels
     assert mesh.uv is None and mesh.texture is None
     assert any("texture coordinates" in r.getMessage() for r in caplog.records)
+
+
+def test_cityjson_texture_values_that_miss_a_ring_vertex_are_an_error_naming_the_polygon(tmp_path) -> None:
+    from server.scene.source import SourceError
+
+    _write_images(tmp_path)
+    path = _cityjson(tmp_path)
+    doc = json.loads(path.read_text())
+    values = doc["CityObjects"]["house"]["geometry"][0]["texture"]["rgb"]["values"]
+    first = next(i for i, v in enumerate(values) if v != [[None]])
+    values[first] = [values[first][0][:-1]]  # one uv index short of the ring's four vertices
+    path.write_text(json.dumps(doc))
+    with pytest.raises(SourceError, match=rf"house\.city\.json.*polygon {first}"):
+        load_source(path)
