@@ -317,6 +317,16 @@ def bench_soak(
         raise typer.Exit(1)
 
 
+def parse_hold(text: str):
+    """``--hold`` as a ``client.governor.Hold``; a bad line is a one-line usage error naming it."""
+    from client.governor import Hold
+
+    try:
+        return Hold.parse(text)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--hold") from None
+
+
 def demo(
     duration: float = typer.Option(10.0, help="seconds of tour to run"),
     target_ms: float = typer.Option(50.0, help="target frame time in milliseconds"),
@@ -330,6 +340,9 @@ def demo(
     solver: str = typer.Option("greedy", help=SOLVER_HELP),
     governor: bool = typer.Option(True, "--governor/--no-governor",
                                   help="the client corrects each frame along the delta's ladder"),
+    hold: str = typer.Option("p95:1.3", help="the line the governor holds, pNN:BOUND (NN % of frames within "
+                             "BOUND × target): by default the demo's own line, 95 % within 1.3 ×; p99:1.1 is "
+                             "the client's default"),
 ) -> None:
     """Build the demo scene if needed, serve it on loopback and run the headless client over its tour."""
     from rich.console import Console
@@ -343,6 +356,7 @@ def demo(
     if not 5 <= target_ms <= 1000:
         raise typer.BadParameter("must lie in [5, 1000]", param_hint="--target-ms")
     check_solver(solver)
+    line = parse_hold(hold)
     path = store or demo_store(objects, seed)
     if not path.exists():
         if store is not None:
@@ -368,10 +382,12 @@ def demo(
             state["second"] = int(rec.t)
             state["frames"] = []
 
-    console.print(f"[bold]walkstream demo[/bold]: scene {scene!r} from {path}, {solver}, {duration:.0f} s at {target_ms:.0f} ms")
+    held = f", holding {line}" if governor else ""
+    console.print(f"[bold]walkstream demo[/bold]: scene {scene!r} from {path}, {solver}, {duration:.0f} s at "
+                  f"{target_ms:.0f} ms{held}")
     run, summary, chart = run_demo(
         path, scene=scene, duration=duration, target=target, viewport=(width, height), out=out, on_frame=on_frame,
-        solver=solver, governor=governor,
+        solver=solver, governor=governor, hold=line,
     )
     if summary.mean_ok and summary.p95_ok:
         verdict = "holds"
@@ -385,7 +401,8 @@ def demo(
         f"c_vertex {summary.cost_coeff * 1e9:.1f} ns; chart {chart}"
     )
     if as_json:
-        print(json.dumps({**summary.as_dict(), "chart": str(chart), "scene": scene, "solver": run.welcome.solver}))
+        print(json.dumps({**summary.as_dict(), "chart": str(chart), "scene": scene, "solver": run.welcome.solver,
+                          "hold": str(line) if governor else None}))
 
 
 def loadtest(

@@ -186,14 +186,17 @@ def run_demo(
     on_frame: Callable | None = None,
     solver: str = "greedy",
     governor: bool = True,
+    hold=None,
 ):
-    """Serve ``store``, run the client over the tour, return (run, summary, chart path)."""
+    """Serve ``store``, run the client over the tour, return (run, summary, chart path); ``hold`` is the
+    governor's line (``client.governor.Hold``; None: the client's default)."""
     from client.app import run_client
+    from client.governor import STRICT
 
     with ServerProcess([store]) as server:
         run = run_client(
             server.url, scene, duration=duration, viewport=viewport, target_frame_time=target, on_frame=on_frame,
-            solver=solver, governor=governor,
+            solver=solver, governor=governor, hold=hold or STRICT,
         )
     summary = summarize(run, target)
     chart = write_chart(run, target, out / "demo-frames.png", title=f"walkstream demo — {scene}, {solver}, target {target * 1e3:.0f} ms")

@@ -34,7 +34,7 @@ from proto.tour import Tour
 from .connection import Arrived, Item, Link, Redialled, as_urls, open_patiently, with_client
 from .frame_loop import FrameLoop, quiet_collector, run_frames
 from .calibrate import renderer_c_vertex
-from .governor import Governor
+from .governor import STRICT, Governor, Hold
 from .navigation import Navigator
 from .records import ClientRun, FrameRecord
 from .renderer import COLOURS, Renderer
@@ -94,6 +94,7 @@ def run_client(
     silence_timeout: float | None = 10.0,
     tour: "Sequence[dict] | None" = None,
     governor: bool = True,
+    hold: Hold = STRICT,
     calibrate: bool = True,
     plan: bool = False,
     record_tour: Path | None = None,
@@ -124,6 +125,7 @@ def run_client(
     tour the server's welcome carries: evaluations drive the camera along paths of their own.
     ``governor`` (on by default) asks for the delta's ladder and corrects the selection every
     frame to hold ``target_frame_time`` (``client.governor``); off, the server's plan is drawn as it is.
+    ``hold`` is the line it holds (``client.governor.Hold``; by default at most 1 % of frames over 1.1 × target).
     ``calibrate`` measures the renderer's seconds per vertex before the hello (``client.calibrate``), the
     server's first guess for its cost model. ``plan`` (with a ``tour``) tells the server the path in the
     hello (``Hello.plan``): it then predicts the camera along the tour instead of extrapolating.
@@ -200,7 +202,7 @@ def run_client(
         welcome = opened.welcome
         loop = FrameLoop(run, renderer, inbox, opened.ws, cache_bytes=cache_bytes, link=link, start=start)
         if governor:
-            loop.governor = Governor(target_frame_time)
+            loop.governor = Governor(target_frame_time, hold=hold)
         try:
             loop.splats = SplatLayer(renderer.ctx)
             loop.splats.sun = renderer.sun

@@ -59,6 +59,9 @@ def client(
     governor: bool = typer.Option(True, "--governor/--no-governor",
                                   help="correct the server's selection every frame along each delta's ladder "
                                        "(the frame governor; --no-governor draws the server's plan as it is)"),
+    hold: str = typer.Option("p99:1.1", help="the line the governor holds: pNN:BOUND keeps NN % of frames within "
+                             "BOUND × target (p99:1.1: at most 1 % over 1.1 ×; a looser line spends more of the "
+                             "time asked for where frames scatter)"),
     reconnect_timeout: float = typer.Option(10.0, min=0.0, help="seconds to keep redialling a lost connection "
                                             "(resuming the session, nothing re-sent); 0: a loss ends the run"),
     record_tour: Optional[Path] = typer.Option(None, "--record-tour", help="with --window: M or Space marks the "
@@ -93,12 +96,14 @@ def client(
             navigate = "fly"  # recording is flying to the stops and marking them
     if duration is None:
         duration = float("inf") if window else 10.0
+    line = bench_cli.parse_hold(hold)
     try:
         run = run_client(
             url, scene, duration=duration, viewport=(width, height), target_frame_time=target_ms / 1e3,
             screenshot=screenshot, solver=solver, predict=predict, morph=morph, window=window, navigate=navigate,
             false_colour=false_colour or colour == "levels", colours="objects" if colour == "objects" else "data",
-            reconnect_timeout=reconnect_timeout, governor=governor, record_tour=record_tour, tour_name=tour,
+            reconnect_timeout=reconnect_timeout, governor=governor, hold=line, record_tour=record_tour,
+            tour_name=tour,
         )
     except (WindowError, ClientError) as exc:
         typer.echo(f"error: {exc}", err=True)

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from client.governor import Governor, GovernorLadder
+from client.governor import SKELETON, STRICT, Governor, GovernorLadder, Hold
 
 DT = 0.05
 TARGET = 0.05
@@ -211,6 +211,47 @@ def test_on_a_machine_whose_frames_scatter_the_tail_holds_and_the_budget_is_spen
     quiet.take(world.ladder())
     frames(world, quiet, lambda i: scale, 200)
     assert quiet.steer == pytest.approx(quiet.aim)
+
+
+def test_a_looser_line_spends_more_of_the_time_and_still_holds_its_own_tail():
+    """The same scattering frames under the walking skeleton's line (95 % within 1.3 ×) and the strict one
+    (99 % within 1.1 ×): each holds its own line, and the looser one spends more of the time asked for."""
+    world = World(400, seed=5, overhead=0.002)
+    noise = np.random.default_rng(9).lognormal(0.0, 0.12, 600)
+    scale = TARGET / world.base
+    spent = {}
+    for line in (STRICT, SKELETON):
+        gov = Governor(TARGET, hold=line)
+        gov.take(world.ladder())
+        spent[line] = np.array([s for _, s, _ in frames(world, gov, lambda i: scale * noise[i], 600)])[100:]
+        assert np.mean(spent[line] > line.bound * TARGET) <= 1 - line.share + 0.01
+    assert spent[SKELETON].mean() >= 0.9 * TARGET  # the demo's line: the mean within ±15 % of the target
+    assert spent[SKELETON].mean() > 1.1 * spent[STRICT].mean()
+
+
+def test_a_governor_given_a_line_still_keeps_rows_where_the_caller_drew_them():
+    world = World(20, seed=1)
+    gov = Governor(TARGET, hold=SKELETON)
+    gov.take(world.ladder())
+    frames(world, gov, lambda i: 3 * TARGET / world.base, 6)  # far over: keys ramp down
+    gov.hold(world.key[:3], np.zeros(3))  # the caller could draw only the plan for these
+    assert gov.line == SKELETON and np.all(gov.g[np.searchsorted(gov.gkey, world.key[:3])] == 0)
+
+
+@pytest.mark.parametrize("text, share, bound", [("p99:1.1", 0.99, 1.1), ("p95:1.3", 0.95, 1.3), ("P50:1", 0.5, 1.0)])
+def test_a_hold_line_reads_as_written(text, share, bound):
+    line = Hold.parse(text)
+    assert (line.share, line.bound) == (pytest.approx(share), pytest.approx(bound))
+    assert Hold.parse(str(line)) == line
+
+
+@pytest.mark.parametrize("text, names", [("p100:1.1", "share in [0.5, 1)"), ("p99:2", "bound in [1, 1.5]"),
+                                         ("99:1.1", "pNN:BOUND"), ("p99", "pNN:BOUND"), ("pxx:1.1", "'pxx:1.1'"),
+                                         ("p40:1.1", "got 0.4 of frames")])
+def test_a_bad_hold_line_is_refused_naming_what_is_wrong(text, names):
+    with pytest.raises(ValueError, match=None) as err:
+        Hold.parse(text)
+    assert names in str(err.value)
 
 
 class ChainWorld:

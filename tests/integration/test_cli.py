@@ -37,6 +37,13 @@ def test_bad_arguments_fail_with_a_clear_message(tmp_path):
     assert done.returncode == 2 and "--grid" in said and "sthelens" in said and not (tmp_path / "x.db").exists()
     done = _walkstream("serve", str(tmp_path / "missing.db"))
     assert done.returncode == 2 and "no such store" in done.stderr
+    for cmd in ("client", "demo"):
+        done = _walkstream(cmd, "--hold", "p100:1.1")
+        said = " ".join(done.stderr.replace("│", " ").split())
+        assert done.returncode == 2 and "--hold" in said and "share in [0.5, 1)" in said, done.stderr
+        done = _walkstream(cmd, "--hold", "99%")
+        said = " ".join(done.stderr.replace("│", " ").split())
+        assert done.returncode == 2 and "pNN:BOUND" in said and "'99%'" in said, done.stderr
     done = _walkstream("client", "--solver", "fastest")
     said = " ".join(done.stderr.replace("│", " ").split())
     assert done.returncode == 2 and "unknown solver 'fastest'" in said and "hierarchical" in said
@@ -55,7 +62,7 @@ def test_demo_json_reports_the_loop(demo_store, tmp_path):
     for key in ("frames", "target_ms", "mean_ms", "p95_ms", "max_ms", "cost_coeff", "chart"):
         assert key in figures
     assert figures["frames"] > 10 and figures["target_ms"] == 12.0 and figures["errors"] == 0
-    assert figures["solver"] == "optimization"
+    assert figures["solver"] == "optimization" and figures["hold"] == "p95:1.3"  # the demo's own line
     assert Path(figures["chart"]).stat().st_size > 10_000  # a PNG with a plot in it
     assert "frames" in done.stderr and "c_vertex" in done.stderr  # the per-second lines
 
