@@ -90,9 +90,11 @@ def measure(replayer, traces: Sequence, *, every: int = 10, warmup: float = 2.0,
             seed: int = 0) -> dict:
     """Image error and popping of every ``every``-th traced frame from ``warmup`` s on (the schema's "quality").
 
-    ``samples`` caps the frames measured (the stride grows to spread them over the whole run: FLIP alone
-    takes about half a second a frame); ``seed`` picks the stride's offset, so the same seed measures
-    the same frames.
+    ``samples`` caps the frames measured (FLIP alone takes about half a second a frame): they are then the
+    frames at ``samples`` tour times spread evenly from the warm-up to the run's last frame, so runs of
+    every method (whose frame rates differ) are compared at the same viewpoints — picked by frame count,
+    a slow method's samples would lie further along the tour than a fast one's. ``seed`` shifts the times
+    (or, without ``samples``, the stride's offset), so the same seed measures the same views.
 
     replayer : ``bench.replay.Replayer`` on the run's scene, viewport and fov
     traces   : the run's ``ClientRun.trace`` (one per frame, so a trace's index is its frame's)
@@ -107,8 +109,15 @@ def measure(replayer, traces: Sequence, *, every: int = 10, warmup: float = 2.0,
     if samples is not None and samples < 1:
         raise ValueError(f"samples must be ≥ 1, got {samples}")
     eligible = [i for i, tr in enumerate(traces) if tr.t >= warmup]
-    stride = every if samples is None else max(every, -(-len(eligible) // samples))
-    picked = eligible[seed % stride::stride]
+    if samples is None or not eligible:
+        picked = eligible[seed % every::every]
+    else:
+        n = min(samples, -(-len(eligible) // every))
+        t = np.array([traces[i].t for i in eligible], np.float64)
+        shift = (seed * 0.6180339887498949) % 1.0  # the golden ratio: seeds spread their times
+        want = t[0] + (np.arange(n) + shift) * (t[-1] - t[0]) / n
+        at = np.clip(np.searchsorted(t, want - 1e-9), 0, t.size - 1)
+        picked = [eligible[k] for k in np.unique(at)]
     out: dict[str, list] = {k: [] for k in ("t", "frame", "flip", "psnr", "ssim", "popping")}
     for done, i in enumerate(picked, start=1):
         tr = traces[i]

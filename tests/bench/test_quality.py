@@ -108,6 +108,21 @@ def test_measure_samples_after_warmup_with_progress(demo) -> None:
         quality.measure(replayer, traces, every=0)
 
 
+def test_capped_samples_are_taken_at_the_same_tour_times_whatever_the_frame_rate(demo) -> None:
+    """Two runs of one tour, one at 20 fps and one at 50: with ``samples`` they are measured at the same views
+    (within a frame), so their image errors compare the methods and not where along the tour each was."""
+    index, replayer = demo
+    slow = [_uniform(index, 0, float(t)) for t in np.arange(0.0, 10.0, 0.05)]
+    fast = [_uniform(index, 0, float(t)) for t in np.arange(0.0, 10.0, 0.02)]
+    a = quality.measure(replayer, slow, every=1, warmup=2.0, samples=4)
+    b = quality.measure(replayer, fast, every=1, warmup=2.0, samples=4)
+    assert len(a["t"]) == len(b["t"]) == 4 and a["t"][0] == pytest.approx(2.0)
+    assert np.allclose(a["t"], b["t"], atol=0.05)
+    assert a["t"][-1] > 7.0  # spread over the whole run, not its first frames
+    c = quality.measure(replayer, slow, every=1, warmup=2.0, samples=4, seed=1)  # another seed: other views
+    assert not np.allclose(a["t"], c["t"], atol=0.05)
+
+
 def test_false_colour_images_at_a_viewpoint(demo, tmp_path) -> None:
     from PIL import Image
 
