@@ -432,6 +432,8 @@ def loadtest(
                                                 "behind the load balancer (default: the --url host)"),
     coherent: bool = typer.Option(True, "--coherent/--no-coherent", help="time the incremental solver's coherent "
                                   "step at 100k objects too (a goal of the same issue)"),
+    separate: bool = typer.Option(False, "--separate-reports", help="send each frame's report in a message of its "
+                                  "own, not with the next pose (twice the messages: what clients sent before)"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON object on stdout"),
 ) -> None:
     """Simulated clients (no GL) against a server: sessions, selections per second and the share of those due,
@@ -458,7 +460,7 @@ def loadtest(
             url=url, stores=stores or None, scene=scene, clients=clients, duration=duration, tau=tau, rate=rate,
             target_ms=target_ms, algorithms=algs, ramp=ramp, seed=seed, reference=reference,
             admin_headers={"Authorization": f"Bearer {admin_token}"} if admin_token else None,
-            live=True, log=lambda s: console.print(s, highlight=False), metrics=metrics,
+            live=True, log=lambda s: console.print(s, highlight=False), metrics=metrics, separate=separate,
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None

@@ -1,8 +1,9 @@
 """The frame loop: one thread that owns the GL context and the websocket's sending side.
 
-Per frame, in order: pose for ``t`` → ``Camera`` → apply queued deltas → the
-schedule's representations and morph weights for ``t`` → draw them (fenced) →
-``FrameReport`` → ``FrameRecord``. The loop never sleeps: between frames it
+Per frame, in order: pose for ``t`` → ``Camera`` (carrying the last frame's
+``FrameReport``: one message a frame) → apply queued deltas → the schedule's
+representations and morph weights for ``t`` → draw them (fenced) → its report
+→ ``FrameRecord``. The loop never sleeps: between frames it
 waits on the receiver's queue (``client.connection``) until the next frame is
 due, so a delta that arrives while the client is idle is decoded and uploaded
 then — always outside the timed fence of a frame.
@@ -398,6 +399,7 @@ def run_frames(
     cache, renderer = loop.cache, loop.renderer
     first = time.monotonic()
     frame = 0
+    report: FrameReport | None = None  # the last frame's, sent with the next pose
     while not loop.closed and not (director is not None and director.done):
         now = time.monotonic()
         if now - first >= duration:
@@ -405,7 +407,9 @@ def run_frames(
         t = now - start
         eye, forward, up = tour.pose_at(t)
         # While the link is down, sends are skipped and frames go on from what is resident.
-        loop.send(Camera(t=t, eye=eye.tolist(), forward=forward.tolist(), up=up.tolist()))
+        # The last frame's report rides with this pose: one message a frame (``Camera.report``).
+        loop.send(Camera(t=t, eye=eye.tolist(), forward=forward.tolist(), up=up.tolist(), report=report))
+        report = None
         if director is not None:
             for msg in director.outgoing(t):
                 loop.send(msg)
@@ -427,7 +431,7 @@ def run_frames(
             gov.observe(stats.time, stats.vertices, keys if stats.seen is None else keys[stats.seen])
         else:
             drew = (0, 0, 0.0, 0.0)
-        loop.send(FrameReport(
+        report = FrameReport(
             frame=frame, t=t, time=min(max(stats.time, 1e-9), 60.0), triangles=stats.triangles,
             vertices=stats.vertices, draws=stats.draws, selection=cache.seq, pixels=stats.pixels,
             splats=stats.splats, gpu_time=None if stats.gpu_time is None else min(stats.gpu_time, 60.0),
@@ -435,7 +439,7 @@ def run_frames(
             terms=None if terms is None else AlgorithmTerms(
                 triangles=terms.triangles, vertices=terms.vertices, pixels=terms.pixels, draws=terms.draws),
             governor_down=drew[0], governor_up=drew[1], governor_cost=min(max(drew[2], 0.0), MAX_LADDER_VERTICES),
-        ))
+        )
         last = loop.last
         record = FrameRecord(
             frame=frame, t=t, time=stats.time, triangles=stats.triangles, vertices=stats.vertices,
@@ -469,3 +473,5 @@ def run_frames(
             if window.should_close:
                 break
         loop.pump(now + period if period > 0 else None)
+    if report is not None and not loop.closed:
+        loop.send(report)  # the last frame has no pose after it

@@ -206,6 +206,7 @@ class ClientConfig:
     model: RendererModel
     seed: int
     timeout: float = 10.0
+    separate: bool = False  # each frame's report in a message of its own, as clients did before ``Camera.report``
 
 
 class SimulatedClient:
@@ -459,8 +460,12 @@ class SimulatedClient:
             t = k * period
             camera["t"], camera["eye"], camera["forward"], camera["up"] = t, eyes[j], fwds[j], ups[j]
             report, ft = self.frame_report(self.frames, t, noise[j])
-            await ws.send(packb(camera))
-            await ws.send(packb(report))
+            if self.cfg.separate:
+                await ws.send(packb(camera))
+                await ws.send(packb(report))
+            else:
+                camera["report"] = report  # one message a frame, as the walkstream client sends
+                await ws.send(packb(camera))
             self.frame_at.append(loop.time())
             self.frame_time.append(ft)
             self.frames += 1

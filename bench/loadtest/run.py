@@ -355,6 +355,7 @@ def run_loadtest(
     log: Callable[[str], None] | None = None,
     workers: int = 1,
     metrics: Sequence[str] | None = None,
+    separate: bool = False,
 ) -> LoadSummary:
     """Run ``clients`` simulated sessions for ``duration`` seconds (the ramp included) and measure the server.
 
@@ -367,7 +368,8 @@ def run_loadtest(
     ``workers``: processes of the started server. ``metrics``: the servers (http://host:port) whose /metrics
     and /sessions are summed — each replica of a deployment behind ``url``'s load balancer (default: ``url``'s).
     The server's CPU is its processes' own: from /proc for a started server (supervisor and workers), else its
-    ``walkstream_cpu_seconds``.
+    ``walkstream_cpu_seconds``. ``separate``: each frame's report in a message of its own (two messages a frame,
+    as before ``Camera.report``), to measure what the messages cost.
     Raises ``LoadtestError`` when the server cannot be used.
     """
     if workers < 1:
@@ -413,7 +415,7 @@ def run_loadtest(
         base = _http_base(url)
         scene = _preflight(base, scene, admin_headers)
         cfg = ClientConfig(url=url, http=base, scene=scene, rate=float(rate), target=target_ms / 1e3,
-                      algorithms=tuple(algorithms), model=model, seed=int(seed))
+                      algorithms=tuple(algorithms), model=model, seed=int(seed), separate=bool(separate))
         bases = [_http_base(m.replace("http://", "ws://").replace("https://", "wss://")) for m in metrics or ()]
         monitor_args = (bases or [base], pid, admin_headers)
 

@@ -145,6 +145,9 @@ class Session:
             return [Error(code=exc.code, message=exc.message)]
 
     def _on_camera(self, message: Camera, now: float) -> list[BaseModel]:
+        if message.report is not None:
+            self._on_frame_report(message.report, now)
+            message = message.model_copy(update={"report": None})  # the session keeps the pose, not the frame
         self.camera = message
         self.clock.observe(message.t, now)
         if self.predictor is not None and self.predictor.add(message.t, message.eye, message.forward, message.up):

@@ -99,6 +99,34 @@ def test_frame_reports_drive_the_cost_model(scenes):
     assert all(v >= 0 for c in stats["cost_coefficients"].values() for v in np.atleast_1d(c))
 
 
+def test_a_report_riding_with_a_pose_counts_as_if_it_came_alone(scenes):
+    """One message a frame (``Camera.report``) drives the session exactly as the two messages did."""
+    start = next(iter(scenes.values())).index.start
+    apart, together = _open(scenes), _open(scenes)
+    for s in (apart, together):
+        s.receive(_camera(scenes), now=0.0)
+        _deltas(s.poll(0.0))
+    for i in range(30):
+        report = FrameReport(frame=i, t=0.1 * i, time=0.1, triangles=200_000, vertices=100_000, draws=5)
+        pose = dict(start, eye=[start["eye"][0] + 0.01 * i, *start["eye"][1:]])
+        assert apart.receive(encode(report), 0.1 * i) == []
+        assert apart.receive(encode(Camera(t=0.1 * i + 0.05, **pose)), 0.1 * i) == []
+        assert together.receive(encode(Camera(t=0.1 * i + 0.05, report=report, **pose)), 0.1 * i) == []
+    assert together.stats["frames"] == apart.stats["frames"] == 30
+    assert together.camera == apart.camera and together.camera.report is None  # the pose is kept, not the frame
+    one, two = _next_delta(apart), _next_delta(together)
+    assert two.cost_coeff == one.cost_coeff == pytest.approx(1e-6, rel=0.01)
+    assert two.selection == one.selection
+    # A report that does not validate refuses the whole message, naming the field, and changes nothing.
+    before = dict(together.stats)
+    bad = msgpack.packb({"type": "camera", "t": 5.0, **start,
+                         "report": {"type": "frame_report", "frame": 1, "t": 5.0, "time": -1.0, "triangles": 1,
+                                    "vertices": 3, "draws": 1}})
+    (err,) = _wire(together.receive(bad, 5.0))
+    assert isinstance(err, Error) and err.code == "invalid" and "report.time" in err.message
+    assert together.stats["frames"] == before["frames"] and together.camera.t < 5.0
+
+
 def test_a_60_hz_client_is_folded_into_the_cost_model_at_observe_hz(scenes):
     s = _open(scenes, config=SessionConfig(observe_hz=20.0))
     s.receive(_camera(scenes), now=0.0)
