@@ -71,7 +71,9 @@ class Recorder:
                     ws.send(encode(_delta()))
                     ws.send(encode(Error(code="internal", message="just testing")))
                     sent = True
-                if self.close_after is not None and isinstance(msg, FrameReport) and msg.frame + 1 >= self.close_after:
+                report = msg.report if isinstance(msg, Camera) else msg
+                if self.close_after is not None and isinstance(report, FrameReport) \
+                        and report.frame + 1 >= self.close_after:
                     ws.close()
         finally:
             self.done.set()
@@ -116,8 +118,12 @@ def test_run_client_reports_what_it_drew(server: tuple[Recorder, str], tmp_path:
     assert all(f.triangles == 0 and f.cost_coeff == 0.0 for f in run.frames if f.seq == -1)
     assert sum(f.upload_time for f in run.frames) > 0
 
-    reports = [m for m in recorder.messages if isinstance(m, FrameReport)]
+    # One message a frame: each pose carries the frame before it's report; the last frame's comes alone.
     cameras = [m for m in recorder.messages if isinstance(m, Camera)]
+    alone = [m for m in recorder.messages if isinstance(m, FrameReport)]
+    assert cameras[0].report is None and all(c.report is not None for c in cameras[1:])
+    assert len(alone) == 1 and recorder.messages[-1] is alone[0]
+    reports = [c.report for c in cameras[1:]] + alone
     assert len(reports) == len(cameras) == len(run.frames)
     assert [r.frame for r in reports] == list(range(len(reports)))
     assert [(r.triangles, r.selection) for r in reports if r.selection == 7] == [(TRIANGLES, 7)] * len(drawn)
