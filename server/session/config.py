@@ -63,7 +63,7 @@ class SessionConfig:
     ahead_share : with the governor, the levels sent ahead for its ladder (``select.ladder.prefetch``) take at
         most this share of the bytes the selection's own adds take (plus ``ahead_floor`` bytes): every byte
         sent is a byte the client decodes and uploads between frames, so the link's headroom is not the limit;
-        with half the adds' bytes the governor had taken every step up in about half the demo's frames
+        yet a governor without finer levels at hand cannot spend time the plan left over
     cost_model : "online" — F&S's coefficients fitted to the frame reports by robust recursive least
         squares, the simplest adequate model chosen (``select.cost_online``); "zach" — the running
         c_vertex average alone (Zach 2002, 4.2), for comparison
