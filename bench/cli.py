@@ -347,7 +347,7 @@ def demo(
     """Build the demo scene if needed, serve it on loopback and run the headless client over its tour."""
     from rich.console import Console
 
-    from bench.demo import run_demo
+    from bench.demo import per_second, run_demo
     from bench.stores import build_demo, demo_store
     from server.scene.store import SceneStore
 
@@ -365,22 +365,7 @@ def demo(
     with SceneStore.open(path) as s:
         scene = s.index.name
 
-    state = {"second": 0, "frames": []}
-
-    def on_frame(rec) -> None:
-        state["frames"].append(rec)
-        if rec.t >= state["second"] + 1:
-            fs = [f for f in state["frames"] if f.seq >= 0]
-            if fs:
-                ms = [f.time * 1e3 for f in fs]
-                console.print(
-                    f"t={int(rec.t):3d}s  frames {len(fs):3d}  mean {sum(ms) / len(ms):6.1f} ms  "
-                    f"max {max(ms):6.1f} ms  target {target_ms:.0f} ms  "
-                    f"triangles {int(sum(f.triangles for f in fs) / len(fs)):8d}  "
-                    f"c_vertex {fs[-1].cost_coeff * 1e9:7.1f} ns"
-                )
-            state["second"] = int(rec.t)
-            state["frames"] = []
+    on_frame = per_second(lambda text: console.print(text), target_ms)
 
     held = f", holding {line}" if governor else ""
     console.print(f"[bold]walkstream demo[/bold]: scene {scene!r} from {path}, {solver}, {duration:.0f} s at "

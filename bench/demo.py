@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["ServerProcess", "Summary", "summarize", "write_chart", "run_demo"]
+__all__ = ["ServerProcess", "Summary", "summarize", "write_chart", "per_second", "run_demo"]
 
 #: Frames in the first seconds are the loop converging; the summary starts after them.
 WARMUP_S = 2.0
@@ -173,6 +173,27 @@ def write_chart(run, target: float, path: Path, title: str = "walkstream demo", 
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def per_second(say: Callable[[str], None], target_ms: float) -> Callable:
+    """An ``on_frame`` that says a line each second: the drawn frames' count, mean and max time, triangles,
+    and the cost model's c_vertex."""
+    state = {"second": 0, "frames": []}
+
+    def on_frame(rec) -> None:
+        state["frames"].append(rec)
+        if rec.t >= state["second"] + 1:
+            fs = [f for f in state["frames"] if f.seq >= 0]
+            if fs:
+                ms = [f.time * 1e3 for f in fs]
+                say(f"t={int(rec.t):3d}s  frames {len(fs):3d}  mean {sum(ms) / len(ms):6.1f} ms  "
+                    f"max {max(ms):6.1f} ms  target {target_ms:.0f} ms  "
+                    f"triangles {int(sum(f.triangles for f in fs) / len(fs)):8d}  "
+                    f"c_vertex {fs[-1].cost_coeff * 1e9:7.1f} ns")
+            state["second"] = int(rec.t)
+            state["frames"] = []
+
+    return on_frame
 
 
 def run_demo(

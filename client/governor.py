@@ -317,10 +317,10 @@ class Governor:
         if self._steer is None:
             # A quantile is only as high as the frames above it: early in a run the 99th percentile of twenty
             # ratios is their largest, and one stall (an upload, the first draws of a level) held the aim at
-            # half the target for seconds. Until the window holds enough frames, the highest quantile with two
-            # frames above it stands in.
+            # half the target for seconds. Until the window holds enough frames, the quantile that lies a frame
+            # below their largest stands in (with n frames, the one at 1 − 1/n).
             n = min(self.measured, self.ratios.size)
-            q = float(np.nanquantile(self.ratios, min(self.quantile, 1.0 - 2.0 / n)))
+            q = float(np.nanquantile(self.ratios, min(self.quantile, 1.0 - 1.0 / n)))
             # The state is kept while its prediction lies within the band, so a frame is predicted up to
             # (1 + slack) × the aim: the tail is steered from the band's top, not its middle.
             self._steer = float(np.clip(self.tail / (max(q, 1e-9) * (1.0 + self.slack)), 0.5, self.aim))

@@ -48,6 +48,9 @@ REGIME_FRAMES, REGIME_ERROR, REGIME_RATIO = 2, 0.3, 3.0
 BATCH_MAX = 64
 #: Frames a side of the stages model is "young": over-predicting the whole frame, it is scaled down to it.
 YOUNG = 10
+#: Relative margin by which the fill side must exceed the geometry side to take a frame: a side's first frame
+#: makes both explain it exactly, and rounding (the compiled fold sums in another order) must not decide a tie.
+TIE = 1e-9
 #: No frame costs less than the fixed overhead c0, so c0 is bounded by the lightest frame measured — with a
 #: slack of LEAST_SLACK, as the overhead itself is noisy (the mean overhead of a stretch of empty frames is up
 #: to twice its lightest) — a bound that rises by LEAST_RISE a frame (doubling in about 700 frames), as
@@ -161,7 +164,7 @@ class _Rung:
             geo, fil = slice(1, 1 + 2 * r), slice(1 + 2 * r, 1 + 3 * r)
             c = self.full()
             g, f = float(c[geo] @ z[geo]), float(c[fil] @ z[fil])
-            fill = f > g
+            fill = f > g * (1.0 + TIE)
             self.sides[fill] += 1
             if self.sides[fill] <= YOUNG and max(g, f) > t:
                 # Both sides start above the truth (each alone explaining the first frame) and the

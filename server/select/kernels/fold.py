@@ -35,12 +35,13 @@ import numpy as np
 
 from .jit import jit
 
-__all__ = ["fold", "compile_all", "RESCALE_SHARE", "SECONDARY", "YOUNG", "REGIME"]
+__all__ = ["fold", "compile_all", "RESCALE_SHARE", "SECONDARY", "YOUNG", "TIE", "REGIME"]
 
 #: The constants of ``rls`` and ``cost_online`` (checked equal by the tests).
 RESCALE_SHARE = 0.05
 SECONDARY = 0.25
 YOUNG = 10
+TIE = 1e-9
 #: REGIME_FRAMES, REGIME_ERROR, REGIME_RATIO
 REGIME = (2, 0.3, 3.0)
 _EPS = np.finfo(np.float64).eps
@@ -418,7 +419,7 @@ def _rung(j, r, t, z, least, light, phi, cov, scale, lower, upper, seen, rs, rp,
         c = np.empty(big)
         _full(j, r, phi, scale, seen, alg, th, c)
         g, f = _sides(c, z, r)
-        is_fill = f > g
+        is_fill = f > g * (1.0 + TIE)
         side = 7 if is_fill else 6
         rs[j, side] += 1
         if rs[j, side] <= YOUNG and max(g, f) > t:
