@@ -62,8 +62,7 @@ class SessionConfig:
         headroom for morph intermediates, pings and estimation error); what is still in flight counts against it
     ahead_share : with the governor, the levels sent ahead for its ladder (``select.ladder.prefetch``) take at
         most this share of the bytes the selection's own adds take (plus ``ahead_floor`` bytes): every byte
-        sent is a byte the client decodes and uploads between frames, so the link's headroom is not the limit;
-        yet a governor without finer levels at hand cannot spend time the plan left over
+        sent is a byte the client decodes and uploads between frames, so the link's headroom is not the limit
     cost_model : "online" — F&S's coefficients fitted to the frame reports by robust recursive least
         squares, the simplest adequate model chosen (``select.cost_online``); "zach" — the running
         c_vertex average alone (Zach 2002, 4.2), for comparison
@@ -85,8 +84,8 @@ class SessionConfig:
     factors: BenefitFactors | None = None
     cost_model: str = "online"
     link_share: float = 0.8
-    ahead_share: float = 1.0
-    ahead_floor: int = 256 * 1024
+    ahead_share: float = 0.5
+    ahead_floor: int = 64 * 1024
     budget_quantile: float = 0.95
     observe_hz: float = 20.0
     bandwidth: float = 10.0e6
