@@ -13,7 +13,7 @@ wait (uvicorn's send waits while the transport's buffer is full).
 Kiosks' heartbeats feed the fleet (``server.fleet``), shown at ``/fleet`` (HTML), ``/fleet.json`` and as
 per-kiosk gauges at ``/metrics``; like ``/sessions`` they cover every worker of the replica.
 
-Session state is saved to a ``StateStore`` after each delta, after acks that
+Session state is saved to a ``StateStore`` after deltas, acks and frames that
 changed it (at most every ``ReplicaLimits.save_interval``) and on disconnect, so a
 client that lost its connection can resume on any replica sharing the store.
 """
@@ -110,13 +110,16 @@ def create_app(
 
     def poll_encoded(session: Session, now: float, culled) -> tuple[list[tuple[bytes, str | None]], bool, float,
                                                                      bytes | None]:
-        """In a tick (``ticker``): run what is due, encode it, and snapshot the state if a delta went out."""
+        """In a tick (``ticker``): run what is due, encode it, and snapshot the state if a delta went out and the
+        last save is ``save_interval`` old (a later one then saves it: the session stays dirty)."""
         began = time.thread_time()
         out = session.poll(now, culled)
         frames = [(encode(m, packed=packed), m.code if isinstance(m, Error) else None) for m in out]
         delta = any(isinstance(m, Delta) for m in out)
         cpu = time.thread_time() - began
-        blob = session.snapshot() if delta else None
+        conn = conns.get(session.id)
+        due = conn is None or time.monotonic() >= conn.last_save + limits.save_interval
+        blob = session.snapshot() if delta and due else None
         return frames, delta, cpu, blob
 
     # Polls that fall due together run as one tick: their selections culled and projected in one pass.
@@ -459,6 +462,7 @@ def create_app(
                             if delta:
                                 metrics.selection_seconds.observe(time.monotonic() - deadline)
                                 metrics.selection_cpu_seconds.observe(cpu)
+                            if blob is not None:
                                 conn.last_save = time.monotonic()
                                 try:
                                     if not await store.save(session.id, session.token, blob, limits.state_ttl,

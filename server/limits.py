@@ -48,7 +48,9 @@ class ReplicaLimits:
     ping_interval, ping_timeout : uvicorn's websocket keepalive pings (seconds)
     threads : threads of the selection pool (per worker process)
     state_ttl : seconds a saved session state is kept for a resume
-    save_interval : the least seconds between two saves of one session's state after acks
+    save_interval : the least seconds between two saves of one session's state (after deltas, acks and frames).
+        A resume sends nothing the client holds whatever the save's age (its hello names what it holds); what
+        an older save loses is the cost model's and the predictor's last second of learning.
     send_buffer : kernel send buffer per connection (bytes; None: the kernel's autotuning, up to
         tcp_wmem's maximum — megabytes per client). Smaller bounds the memory a slow client pins and
         makes backpressure reach its session sooner.
@@ -78,7 +80,7 @@ class ReplicaLimits:
     ping_timeout: float = 20.0
     threads: int = field(default_factory=_cpus)
     state_ttl: float = 300.0
-    save_interval: float = 0.25
+    save_interval: float = 1.0
     send_buffer: int | None = None
     hello_timeout: float = 5.0
     max_bad_frames: int = 16

@@ -1,7 +1,8 @@
 """The ``walkstream`` command line: the root app, assembled from the commands of each part.
 
 The server's commands (``build``, ``inspect``, ``serve``) live in ``server/cli.py`` and the
-benchmarks and evaluations (``demo``, ``loadtest``, ``eval``, ``bench ...``) in ``bench/cli.py``.
+benchmarks and evaluations (``demo``, ``eval``, ``bench ...``) in ``bench/cli.py``, the load commands
+(``loadtest``, ``bench sessions``) in ``bench/cli_load.py``.
 The ``client`` command lives here: it checks the solver against the server's registry and
 prints the demo's frame-time summary, and the client package imports only ``proto``.
 Each command imports what it needs when it runs, so ``--help`` is instant.
@@ -18,6 +19,7 @@ from typing import Literal, Optional
 import typer
 
 from bench import cli as bench_cli
+from bench import cli_load
 from server import cli as server_cli
 from server.cli import SOLVER_HELP, check_solver
 
@@ -181,8 +183,9 @@ app.command()(server_cli.serve)
 app.command()(client)
 app.command()(kiosk)
 app.command()(bench_cli.demo)
-app.command()(bench_cli.loadtest)
+app.command()(cli_load.loadtest)
 app.command("eval")(bench_cli.eval_)
+bench_cli.bench_app.command("sessions")(cli_load.bench_sessions)
 app.add_typer(bench_cli.bench_app, name="bench")
 
 

@@ -4,9 +4,10 @@ Each scripted client is a ``SimulatedClient`` (the load generator's, so the same
 poses, frame reports, pongs and acks) whose messages go straight into a sans-I/O
 ``Session`` at their virtual time, and whose replies to what the session sends
 arrive a fixed ``latency`` later. Time advances in ticks; in each tick every
-client's messages due by then are received, and then every session whose
+client's messages due by then are received, then every session whose
 selection or ping is due is polled — one at a time, or all together through the
-server's ``Ticker`` — with the tick's time as ``now``. Nothing reads a clock, so a
+server's ``Ticker`` — with the tick's time as ``now``, and then the sessions whose
+state changed are snapshotted as the app saves them (``save_interval``). Nothing reads a clock, so a
 session's messages depend only on its own script: the same scripted session
 gives the same deltas alone and among fifty others (``tests/server/session/
 test_batch.py``), and the CPU each part of the server spends per session-second
@@ -47,6 +48,7 @@ class ScriptedRun:
     session_seconds: float = 0.0
     deltas: int = 0
     polls: int = 0
+    snapshots: int = 0
 
     def per_session_second(self) -> dict[str, float]:
         """CPU seconds per session-second, by part and in total."""
@@ -72,12 +74,17 @@ def run_scripted(
     algorithms: tuple[str, ...] = ("flat",),
     target: float = 0.05,
     only: int | None = None,
+    separate: bool = False,
+    save_interval: float | None = None,
 ) -> ScriptedRun:
     """Run ``n`` scripted clients for ``seconds`` of virtual time; client i starts at i·stagger/n.
 
     make_session(i) : a fresh ``Session`` for client i
     poll(sessions, now) : polls the due sessions together, returning each one's messages (default: one at a time)
     only : keep the frames of this client alone (the others' are dropped as they go)
+    separate : each frame's report in a message of its own (default: with the frame's pose, as clients send it)
+    save_interval : snapshot each session whose state changed, at most this often (``cpu["snapshot"]``), as the
+        app saves them (None: no snapshots)
     """
     name = scene or next(iter(scenes))
     cfg = ClientConfig(url="", http="", scene=name, rate=rate, target=target, algorithms=tuple(algorithms),
@@ -92,6 +99,7 @@ def run_scripted(
     order = 0
     steps = [0] * n  # frames each client has sent
     opened = [False] * n
+    saved = [-np.inf] * n  # when each session's state was last saved (``save_interval``)
     chunks: list[dict] = [{} for _ in range(n)]
     period = 1.0 / rate
     packb = msgpack.packb
@@ -147,10 +155,15 @@ def run_scripted(
             eye, fwd, up, noise = chunk[k]
             t = k * period
             at = origin[i] + t
-            post(at, i, packb({"type": "camera", "t": t, "eye": eye, "forward": fwd, "up": up}))
+            camera = {"type": "camera", "t": t, "eye": eye, "forward": fwd, "up": up}
             report, _ = c.frame_report(c.frames, t, noise)
             c.frames += 1
-            post(at, i, packb(report))
+            if separate:
+                post(at, i, packb(camera))
+                post(at, i, packb(report))
+            else:
+                camera["report"] = report
+                post(at, i, packb(camera))
             steps[i] += 1
 
     now = 0.0
@@ -179,6 +192,14 @@ def run_scripted(
             cpu["poll"] += time.thread_time() - began
             for i, out in zip(due, outs):
                 deliver(i, out, now)
+        if save_interval is not None:
+            for i in range(n):
+                if opened[i] and now >= saved[i] + save_interval - 1e-9 and sessions[i].dirty:
+                    began = time.thread_time()
+                    sessions[i].snapshot()
+                    cpu["snapshot"] += time.thread_time() - began
+                    saved[i] = now
+                    run.snapshots += 1
         now = round(now + tick, 9)
     run.session_seconds = sum(max(0.0, end - o) for o in origin)
     return run

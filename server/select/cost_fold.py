@@ -28,13 +28,13 @@ def _deque(rows, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
     for j, d in enumerate(rows):
         n[j] = len(d)
         if d:
-            out[j, : len(d)] = list(d)
+            out[j, : len(d)] = np.fromiter(d, dtype, len(d))
     return out, n
 
 
 def _back(d, row: np.ndarray, n: int, cast=float) -> None:
     d.clear()
-    d.extend(cast(v) for v in row[:n])
+    d.extend(row[:n].astype(cast).tolist())  # Python floats (bools): what the model's own methods append
 
 
 def fold_frames(model, times: np.ndarray, z: np.ndarray, only_least: np.ndarray, kernel, models: tuple,

@@ -35,7 +35,10 @@ def _enc(value: Any) -> Any:
     if type(value) in _PLAIN:
         return value
     if isinstance(value, deque):
-        value = np.asarray(list(value)) if value else np.zeros(0)
+        if value and type(value[0]) is float:  # the common history: no list in between
+            value = np.fromiter(value, np.float64, len(value))
+        else:
+            value = np.asarray(list(value)) if value else np.zeros(0)
     if isinstance(value, np.ndarray):
         a = np.ascontiguousarray(value)
         return {"nd": a.dtype.str, "shape": list(a.shape), "b": a.tobytes()}

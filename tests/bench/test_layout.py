@@ -71,4 +71,4 @@ def test_the_root_app_has_every_command_in_order():
     assert list(root.commands) == ["build", "inspect", "serve", "client", "kiosk", "demo", "loadtest", "eval",
                                   "bench"]
     assert list(root.commands["bench"].commands) == ["build", "select", "predict", "render", "benefit", "encoding", "hostile",
-                                                   "soak"]
+                                                   "soak", "sessions"]
