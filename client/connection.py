@@ -422,8 +422,9 @@ class Link:
     def can_redial(self) -> bool:
         return self.patience > 0 and self.welcome is not None and bool(self.welcome.token)
 
-    def redial(self, held: np.ndarray, now: float, reason: str, inbox: "queue.Queue[Item]") -> None:
-        """Start the background redial, resuming the last welcome's session with ``held`` as the manifest.
+    def redial(self, held: np.ndarray, seq: int, now: float, reason: str, inbox: "queue.Queue[Item]") -> None:
+        """Start the background redial, resuming the last welcome's session with ``held`` as the manifest and
+        ``seq`` as the last delta applied (-1: none).
 
         It dials the last server first, then the others in turn.
         """
@@ -432,7 +433,8 @@ class Link:
         blob = pack_held(held)
         self.held = int(held.size) if len(blob) <= MAX_HELD_BYTES else 0
         hello = self.hello.model_copy(update={
-            "resume": Resume(session=self.welcome.session, token=self.welcome.token),
+            "resume": Resume(session=self.welcome.session, token=self.welcome.token,
+                             seq=seq if seq >= 0 else None),
             "held": blob if self.held or held.size == 0 else None,
         })
         self.stop.clear()

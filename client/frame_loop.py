@@ -170,7 +170,7 @@ class FrameLoop:
             self.run.errors.append(Error(code="connection_lost",
                                          message=f"{reason} at t={now:.2f} s; {why}"[:4096]))
             return
-        link.redial(self.cache.held_reps(), now, reason, self.inbox)
+        link.redial(self.cache.held_reps(), self.cache.seq, now, reason, self.inbox)
 
     def count_connection(self, counter: list[int]) -> None:
         """Fold one finished connection's counters into the run."""

@@ -127,6 +127,9 @@ class Resume(_Message):
 
     session: Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_\-]+$")]
     token: Annotated[str, Field(min_length=16, max_length=128, pattern=r"^[A-Za-z0-9_\-]+$")]
+    #: The last delta the client applied: the server numbers its deltas on after it, since the state it
+    #: resumes from may have been saved before its last deltas were sent. None: the saved numbering stands.
+    seq: Count | None = None
 
 
 #: Keys a tour plan carries at most (a 10-minute tour keyed ten times a second).

@@ -263,6 +263,9 @@ class Session:
             teleport = max(200.0, 3.0 * tour_speed(tour)) if hello.max_speed is None else 200.0
             self.predictor = Predictor(MotionLimits(speed=hello.max_speed, turn=turn), teleport_speed=teleport)
         if resumed:
+            if hello.resume.seq is not None:
+                # The save may predate the last deltas sent: number on after what the client applied.
+                self.seq = max(self.seq, hello.resume.seq)
             self.mirror.budget = budget
             self.mirror.restart(self.seq)  # acks of deltas before the resume are stale
             if self.predictor is not None and restored["predictor"] is not None:

@@ -206,6 +206,26 @@ def test_resume_without_held_uses_the_snapshot_mirror(denhaag):
     assert len(client.deltas) > n and client.sent_again == [] and s2.mirror_mismatch == 0
 
 
+def test_a_resume_from_an_older_save_numbers_on_after_the_clients_last_delta(denhaag):
+    """Saves are at most once a second, so the state a replica resumes from may predate the last deltas the
+    client applied: their numbers must not be used again (the client would take a later delta for an old one)."""
+    s1, client, _ = _drive(denhaag, seconds=1.0, session_id="s5")
+    blob, saved_seq = s1.snapshot(), s1.seq
+    client.run(s1, 1.5)  # deltas sent after the save, then the replica dies
+    assert s1.seq > saved_seq and client.cache.seq == s1.seq
+    for told, numbered_after in ((client.cache.seq, s1.seq), (None, saved_seq)):
+        s2 = Session(denhaag, s1.id, token=s1.token, stopwatch=time.perf_counter)
+        s2.restore(blob)
+        hello = _hello(denhaag, resume=Resume(session=s1.id, token=s1.token, seq=told),
+                       held=pack_held(_held_ids(client.cache)))
+        (w,) = client.handle(s2, s2.receive(encode(hello), client.t))
+        assert w.resumed
+        n = len(client.deltas)
+        client.run(s2, 1.0)
+        assert client.deltas[n:] and client.deltas[n].seq == numbered_after + 1 and client.deltas[n].reset
+        assert client.sent_again == [] and s2.mirror_mismatch == 0
+
+
 def test_a_fresh_session_with_held_sends_none_of_it(denhaag):
     _, client, _ = _drive(denhaag, seconds=2.0, session_id="s4")
     held = _held_ids(client.cache)
