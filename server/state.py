@@ -238,12 +238,38 @@ class SqliteStateStore(StateStore):
         self._lock = threading.Lock()  # one connection per store object, used by one thread at a time
         try:
             self._db = sqlite3.connect(self.path, timeout=timeout, check_same_thread=False, isolation_level=None)
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=OFF")
-            self._db.execute("CREATE TABLE IF NOT EXISTS sessions (id TEXT PRIMARY KEY, token TEXT NOT NULL, "
-                             "blob BLOB NOT NULL, expires REAL NOT NULL)")
+            self._setup(self._db, time.monotonic() + timeout)
         except sqlite3.Error as exc:
             raise StateStoreError(f"cannot open the session-state file {self.path}: {exc}") from None
+
+    @classmethod
+    def create(cls, path: str, timeout: float = 5.0) -> None:
+        """Make the file (WAL, the table) and close it: the supervisor does this before its workers open it."""
+        store = cls(path, timeout=timeout)
+        with store._lock:
+            store._db.close()
+            store._db = None
+
+    @staticmethod
+    def _setup(db: sqlite3.Connection, deadline: float) -> None:
+        """WAL and the table, as workers opening one new file at once can both ask. The schema is written under
+        ``BEGIN IMMEDIATE`` (a writer waits its turn in the busy handler); the switch to WAL needs the file to
+        itself and SQLite reports a lock at once rather than wait, so it is asked again until ``deadline``."""
+        delay = 0.002
+        while True:
+            try:
+                db.execute("PRAGMA journal_mode=WAL")
+                break
+            except sqlite3.OperationalError as exc:
+                if "locked" not in str(exc) or time.monotonic() + delay > deadline:
+                    raise
+                time.sleep(delay)  # another process holds the file for its own switch: a few ms
+                delay = min(2 * delay, 0.1)
+        db.execute("PRAGMA synchronous=OFF")
+        db.execute("BEGIN IMMEDIATE")
+        db.execute("CREATE TABLE IF NOT EXISTS sessions (id TEXT PRIMARY KEY, token TEXT NOT NULL, "
+                   "blob BLOB NOT NULL, expires REAL NOT NULL)")
+        db.execute("COMMIT")
 
     async def _run(self, what: str, fn, *args):
         def call():

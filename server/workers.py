@@ -35,7 +35,7 @@ from pathlib import Path
 from .limits import ReplicaLimits
 from .session import SessionConfig
 from .startup import ServeError, bind_listener, check_state_url, load_scenes, reserve_port
-from .state import MemoryStateStore, RedisStateStore, open_state_store
+from .state import MemoryStateStore, RedisStateStore, SqliteStateStore, open_state_store
 
 __all__ = ["serve", "WorkerSpec"]
 
@@ -92,6 +92,7 @@ def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8765, config: 
     run_dir = tempfile.mkdtemp(prefix="walkstream-replica-")
     if state_url in (None, "", "memory", "memory://"):
         state_url = f"sqlite:///{run_dir}/state.db"
+        SqliteStateStore.create(f"{run_dir}/state.db")  # made once here, not raced for by the workers
     os.makedirs(f"{run_dir}/metrics")
     spec = WorkerSpec(tuple(map(str, paths)), host, bound, config, limits, state_url, admin_token,
                       replica or f"{socket.gethostname()}:{bound}", log_level, run_dir, os.getpid())

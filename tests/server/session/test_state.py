@@ -578,3 +578,27 @@ def test_racing_workers_never_both_take_a_session(tmp_path):
         return owners
 
     assert asyncio.run(check()) <= {"a", "b"}
+
+
+def test_workers_opening_one_new_file_at_once_all_open_it(tmp_path):
+    """Worker processes start together and each opens the replica's state file: whichever comes first makes
+    it (WAL, the table) and none of them fails on the other's lock. Four processes race for 40 new files."""
+    code = ("import asyncio, sys; from server.state import SqliteStateStore as S\n"
+            "async def go(me):\n"
+            "    for i in range(40):\n"
+            "        s = S(f'{sys.argv[1]}/f{i}.db')\n"
+            "        assert await s.save(f'{me}{i}', me * 16, b'x', 60.0)\n"
+            "        await s.close()\n"
+            "asyncio.run(go(sys.argv[2]))")
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(tmp_path), me], stderr=subprocess.PIPE, text=True)
+             for me in "abcd"]
+    errors = [p.communicate(timeout=120)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0, 0], [e[-400:] for e in errors]
+
+    async def check():
+        store = SqliteStateStore(str(tmp_path / "f39.db"))
+        found = [await store.load(f"{me}39") for me in "abcd"]
+        await store.close()
+        return found
+
+    assert all(f is not None and f[1] == b"x" for f in asyncio.run(check()))
