@@ -89,7 +89,7 @@ def test_run_returns_every_figure():
     assert result["levels"] == 4 and result["repeats"] == 1
     (row,) = result["sizes"]
     _figures_finite(row, [
-        "objects", "budget_s", "greedy_ms", "greedy_benefit", "coherent_ms", "coherent_greedy_ms",
+        "objects", "budget_s", "greedy_ms", "greedy_benefit", "coherent_ms", "coherent_cold_ms", "coherent_greedy_ms",
         "optimization_benefit", "lp_bound", "greedy_vs_lp", "optimization_vs_lp", "exact_benefit",
         "greedy_vs_exact", "optimization_vs_exact", "reference_ms", "reference_benefit", "speedup_vs_reference",
         "greedy_numpy_ms", "kernels_speedup",
