@@ -298,7 +298,12 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                 polygon_px = s / max(np.float64(faces[i, 0]), 1.0)
                 edge = math.sqrt(max(polygon_px, 1.0))
                 mo = 1.0 / (1.0 + motion_strength * max(speed[j, i], 0.0) * frame_time / edge)
+            # Pixels per metre of the row's box at this camera: the same for every option of the row.
+            per_m = math.sqrt(2.0 * max(s, 0.0)) / max(extent[i], 1e-12) if accuracy_mode == ACCURACY_SSE else 0.0
             for k in range(kk):
+                if not valid[i, k] and k != prev:
+                    b[k] = 0.0  # zeroed below; only the previous option's benefit is read (hysteresis)
+                    continue
                 # benefit_matrix's order: Size, Accuracy (the texture's share last), Importance, Focus, Motion.
                 x = 1.0
                 if use_size:
@@ -309,7 +314,7 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                     f = max(np.float64(faces[i, k]), 1.0)
                     x *= max(1.0, s / orig) / max(1.0, s / f)
                 elif accuracy_mode == ACCURACY_SSE:
-                    px = max(np.float64(error[i, k]), 0.0) * (math.sqrt(2.0 * max(s, 0.0)) / max(extent[i], 1e-12))
+                    px = max(np.float64(error[i, k]), 0.0) * per_m
                     x *= 1.0 / (1.0 + px)
                 if use_appearance:
                     x *= appearance[i, k]
@@ -326,7 +331,8 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                     b[k] = b[k] - (1.0 - keep[k]) * abs(b[k] - at_prev)
             wj = weight[j]
             for k in range(kk):
-                out[i, k] += wj * b[k]
+                if valid[i, k]:
+                    out[i, k] += wj * b[k]
         for k in range(kk):
             if not valid[i, k]:
                 out[i, k] = 0.0
