@@ -95,13 +95,25 @@ def plan(selected, key, lo, hi, extra, rep_bytes, rep_level, rep_mix, budget, re
             t += 1
             state[r] = 1
     want = np.sort(touched[:t])
-    # The reference's lexsort((bytes, level, later)) over ids in order: stable sorts, last key last.
-    want = _stable_by(want, rep_bytes[want])
-    want = _stable_by(want, rep_level[want])
-    later = np.empty(t, np.int64)
+    # The reference's lexsort((bytes, level, later)) over ids in order. Where the keys fit one int64 (levels
+    # under 64, payloads under 2**56 bytes: every real scene) that is one stable sort of the packed key;
+    # otherwise three stable sorts, last key last.
+    packed = np.empty(t, np.int64)
+    fits = True
     for i in range(t):
-        later[i] = 1 if state[want[i]] == 1 else 0
-    want = _stable_by(want, later)
+        r = want[i]
+        lv, nb = rep_level[r], rep_bytes[r]
+        fits = fits and 0 <= lv < 32 and 0 <= nb < (np.int64(1) << 56)
+        packed[i] = ((np.int64(1) if state[r] == 1 else np.int64(0)) << 61) | (np.int64(lv) << 56) | np.int64(nb)
+    if fits:
+        want = _stable_by(want, packed)
+    else:
+        want = _stable_by(want, rep_bytes[want])
+        want = _stable_by(want, rep_level[want])
+        later = np.empty(t, np.int64)
+        for i in range(t):
+            later[i] = 1 if state[want[i]] == 1 else 0
+        want = _stable_by(want, later)
     keep_n = t
     sizes = 0
     for i in range(t):
