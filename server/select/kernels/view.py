@@ -77,6 +77,12 @@ def _centre(cx, cy, cz, m, limit):
     x = cx * m[0, 0] + cy * m[0, 1] + cz * m[0, 2] + m[0, 3]
     y = cx * m[1, 0] + cy * m[1, 1] + cz * m[1, 2] + m[1, 3]
     w = cx * m[3, 0] + cy * m[3, 1] + cz * m[3, 2] + m[3, 3]
+    return _ndc(x, y, w, limit)
+
+
+@jit(inline="always")
+def _ndc(x, y, w, limit):
+    """``_centre`` from the point's clip coordinates."""
     if w > 1e-9:
         return min(max(x / w, -limit), limit), min(max(y / w, -limit), limit)
     reach = max(abs(x), abs(y))
@@ -158,19 +164,23 @@ def project(lo, hi, rows, clips, planes, widths, heights, cull, before, has_befo
                     if not (w > 1e-6):
                         behind = True
                         break
-                    x = min(max((b0 + sx) / w, -1.0), 1.0)
-                    y = min(max((b1 + sy) / w, -1.0), 1.0)
+                    iw = 1.0 / w
+                    x = min(max((b0 + sx) * iw, -1.0), 1.0)
+                    y = min(max((b1 + sy) * iw, -1.0), 1.0)
                     x_lo, x_hi = min(x_lo, x), max(x_hi, x)
                     y_lo, y_hi = min(y_lo, y), max(y_hi, y)
                 size[j, q] = full if behind else (x_hi - x_lo) * (y_hi - y_lo) * 0.25 * wd * ht
             # Focus: the centre's distance from the screen centre over the half diagonal.
             cx, cy, cz = cen[q, 0], cen[q, 1], cen[q, 2]
-            nx, ny = _centre(cx, cy, cz, m, 1.0)
+            px = cx * m00 + cy * m01 + cz * m02 + m03  # (``_centre``'s sums: the centre's clip coordinates)
+            py = cx * m10 + cy * m11 + cz * m12 + m13
+            pw = cx * m30 + cy * m31 + cz * m32 + m33
+            nx, ny = _ndc(px, py, pw, 1.0)
             dx, dy = (nx + 1.0) * 0.5 * wd - hw, (ny + 1.0) * 0.5 * ht - hh
             offset[j, q] = min(max(math.sqrt(dx * dx + dy * dy) / diag, 0.0), 1.0)
             # Motion: how far the centre (clamped at ±SPEED_LIMIT_NDC) moved on screen since ``before``.
             if has_before:
-                ax, ay = _centre(cx, cy, cz, m, lim)
+                ax, ay = _ndc(px, py, pw, lim)
                 dx = (ax + 1.0) * 0.5 * wd - (was[q, 0] + 1.0) * 0.5 * wd
                 dy = (ay + 1.0) * 0.5 * ht - (was[q, 1] + 1.0) * 0.5 * ht
                 moved[j, q] = math.sqrt(dx * dx + dy * dy)
