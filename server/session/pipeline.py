@@ -160,7 +160,7 @@ class Pipeline:
         if choice.x is not None and choice.x_reps is not None:
             rt = self.ramp.schedule(choice.x_reps, choice.x, start, switch, reset=reset)
             vegetation, resolution = choice.x_reps.tolist(), np.clip(choice.x, 0.0, 1.0).tolist()
-            ramps = Morphs(rep=rt.key.tolist(), level_from=np.clip(rt.level_from, 0, 1).tolist(),
+            ramps = Morphs.model_construct(rep=rt.key.tolist(), level_from=np.clip(rt.level_from, 0, 1).tolist(),
                            level_to=np.clip(rt.level_to, 0, 1).tolist(), t0=rt.t0.tolist(), t1=rt.t1.tolist())
             # Tree groups drawn now, and those a ramp still draws from the window on, must be resident too.
             drawn_groups = np.asarray(choice.x_reps, np.int64)[np.asarray(choice.x) > 0]
@@ -183,26 +183,29 @@ class Pipeline:
             order = rank[table.rep_object[new]]
             new = new[np.lexsort((table.rep_level[new], order))]
         add, models, nbytes = self._adds(new, mirror)
-        morphs = Morphs(
+        morphs = Morphs.model_construct(
             rep=(tr.key + tr.level_to.astype(np.int64)).tolist(), level_from=tr.level_from.tolist(),
             level_to=tr.level_to.tolist(), t0=tr.t0.tolist(), t1=tr.t1.tolist(),
         )
         took = 0.0 if stopwatch is None else stopwatch() - began
         self.last_stats.update(tr.stats)
-        delta = Delta(
-            seq=seq,
+        # Built, not validated: every value is the server's own, and validating its long lists costs more than
+        # encoding them. The client validates what it decodes; the tests check a delta built here against a
+        # validated copy, byte for byte.
+        delta = Delta.model_construct(
+            seq=int(seq),
             t0=float(switch),
             t1=float(switch + tau),
             start=float(start),
-            reset=reset,
+            reset=bool(reset),
             add=add,
             drop=drop.tolist(),
             models=models,
             selection=reps.tolist(),
             algorithm=[] if algorithm is None else algorithm.tolist(),
-            budget=budget,
-            predicted_cost=choice.cost,
-            cost_coeff=cost.c_vertex,
+            budget=float(budget),
+            predicted_cost=float(choice.cost),
+            cost_coeff=float(cost.c_vertex),
             compute=min(max(took, 0.0), 3600.0),
             morphs=morphs,
             vegetation=vegetation,
@@ -210,9 +213,9 @@ class Pipeline:
             ramps=ramps,
             ladder_rep=ladder.rep.tolist(),
             ladder_to=ladder.to.tolist(),
-            ladder_cost=np.minimum(ladder.cost, MAX_LADDER_VERTICES).tolist(),
-            ladder_value=ladder.value.tolist(),
-            ladder_base=min(ladder.base, MAX_LADDER_VERTICES),
+            ladder_cost=np.minimum(ladder.cost, MAX_LADDER_VERTICES).astype(np.float64).tolist(),
+            ladder_value=ladder.value.astype(np.float64).tolist(),
+            ladder_base=float(min(ladder.base, MAX_LADDER_VERTICES)),
         )
         return delta, nbytes, took
 

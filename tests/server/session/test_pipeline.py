@@ -217,3 +217,27 @@ def test_without_prediction_the_last_pose_is_selected_for(scenes):
     link.run(4.0)
     assert link.session.predictor is None and len(link.deltas) >= 5
     assert all(a <= d.start for a, d in link.deltas[1:])
+
+
+class _Recorded(Link):
+    """A link that keeps every message the session built, before it was encoded."""
+
+    def _to_client(self, messages):
+        vars(self).setdefault("built", []).extend(messages)
+        super()._to_client(messages)
+
+
+@pytest.mark.parametrize("governor", [False, True])
+def test_a_delta_as_built_encodes_as_its_validated_copy(scenes, governor):
+    """The pipeline builds deltas without validating them: each must be exactly what validation gives, to the
+    byte on the wire (a numpy scalar or an int where a float belongs would differ, or not encode at all)."""
+    link = _Recorded(scenes, one_way=0.03, budget=0.0015, governor=governor)
+    link.run(6.0)
+    built = [m for m in link.built if isinstance(m, Delta)]
+    assert len(built) >= 8
+    assert any(d.morphs.rep for d in built) and any(d.add for d in built)
+    if governor:
+        assert any(d.ladder_rep for d in built)
+    for d in built:
+        validated = Delta.model_validate(d.model_dump())
+        assert encode(validated, compress=False) == encode(d, compress=False), d.seq
