@@ -52,11 +52,9 @@ def resident_fallback(reps: np.ndarray, rep_first: np.ndarray, resident: np.ndar
     return np.where(cand >= np.asarray(rep_first, np.int64), cand, -1)
 
 
-def gain(lo: np.ndarray, hi: np.ndarray, clip: np.ndarray, width: int, height: int,
-         faces_to: np.ndarray, faces_from: np.ndarray) -> np.ndarray:
-    """(s,) F&S benefit gained by showing ``faces_to`` instead of ``faces_from`` (0: nothing): pixels covered ×
-    the rise in accuracy (1 − 0.5/faces, capped at the pixels as F&S cap Samples)."""
-    size = screen_size(lo, hi, clip, width, height)
+def gain(size: np.ndarray, faces_to: np.ndarray, faces_from: np.ndarray) -> np.ndarray:
+    """(s,) F&S benefit gained by showing ``faces_to`` instead of ``faces_from`` (0: nothing) on ``size`` pixels
+    covered: pixels × the rise in accuracy (1 − 0.5/faces, capped at the pixels as F&S cap Samples)."""
     cap = np.maximum(size, 1.0)
     acc_to = accuracy(np.minimum(faces_to, cap))
     acc_from = np.where(np.asarray(faces_from) > 0, accuracy(np.minimum(faces_from, cap)), 0.0)
@@ -173,9 +171,9 @@ def through_gate(reps: np.ndarray, algorithm: np.ndarray | None, cam, table, res
     nb_coarse = realise_bytes(coarse, prev, first, table.rep_bytes, resident)
     faces = table.rep_faces
     held_faces = np.where(fallback >= 0, faces[np.maximum(fallback, 0)], 0)
-    lo, hi, clip = table.object_lo[obj], table.object_hi[obj], cam.matrix()
-    g_full = gain(lo, hi, clip, cam.width, cam.height, faces[r], held_faces)
-    g_coarse = gain(lo, hi, clip, cam.width, cam.height, faces[coarse], held_faces)
+    size = screen_size(table.object_lo[obj], table.object_hi[obj], cam.matrix(), cam.width, cam.height)
+    g_full = gain(size, faces[r], held_faces)
+    g_coarse = gain(size, faces[coarse], held_faces)
     # Two increments where the stand-in is a real step of at least the full choice's value; else the full one.
     two = (coarse < r) & (g_coarse * np.maximum(nb_full, 1) >= (g_full - g_coarse) * np.maximum(nb_coarse, 1))
     n2 = int(two.sum())
