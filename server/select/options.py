@@ -58,6 +58,19 @@ def option_arrays(lv, rows: np.ndarray, algorithms: int = 1):
     return tuple(a if a.shape[1] == cols else np.ascontiguousarray(a[:, :cols]) for a in out)
 
 
+def option_errors(lv, rows: np.ndarray, cols: int, algorithms: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(v, cols) the geometric error of the given rows' options (0 where invalid), as ``option_arrays`` lays
+    them out, and (v,) the rows' box diagonals: the screen-space error accuracy's inputs, built once per view."""
+    def every():
+        rep, valid, _, _ = option_arrays(lv, np.arange(lv.n), algorithms)
+        extent = np.linalg.norm(lv.object_hi.astype(np.float64) - lv.object_lo, axis=1)
+        return np.where(valid, lv.rep_error[rep], 0.0), extent
+
+    error, extent = cached(lv, ("errors", algorithms), every)
+    error = np.take(error, rows, axis=0)
+    return (error if error.shape[1] == cols else np.ascontiguousarray(error[:, :cols])), np.take(extent, rows)
+
+
 def _tuple_cost(cost_model, faces, vertices, pixels, algorithm):
     """(v, K) seconds per option: the model's F&S terms, one draw each."""
     return cost_model.predict_terms(faces, vertices, pixels, algorithm, 1.0)
@@ -184,8 +197,7 @@ def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=
     if factors.accuracy == "sse":
         if lv.rep_error is None:
             raise ValueError("screen-space error accuracy needs the view's rep_error (Levels.subset of an index)")
-        error = np.where(valid, lv.rep_error[rep], 0.0)
-        extent = np.linalg.norm(lv.object_hi[rows].astype(np.float64) - lv.object_lo[rows], axis=1)
+        error, extent = option_errors(lv, rows, faces.shape[1], r)
     # Only a view holding textured representations pays for the texture's share of accuracy.
     textured = (np.take(lv.rep_textured, rep) & valid) if getattr(lv, "rep_textured", None) is not None else None
     if kern is not None:
