@@ -163,6 +163,9 @@ class MorphScheduler:
             self._kept, self.switch = needed, switch
             return Transitions(np.zeros(0, np.int64), empty, empty, empty, empty, *out_needed, stats)
 
+        ready = kernels.compiled()
+        if ready is not None and _sorted_unique(key):  # the usual case: one compiled pass, the same numbers
+            return self._schedule_compiled(ready.delta.schedule, key, level, kind, start, switch, stats)
         at_start = prev.at(start)
         pos = np.searchsorted(prev.key, key)
         pos_c = np.minimum(pos, max(prev.key.size - 1, 0))
@@ -221,6 +224,21 @@ class MorphScheduler:
         out_needed = self._union(needed, self._kept)
         self._kept, self.switch = needed, switch
         return Transitions(out_key, out_from, out_to, out_t0, out_t1, *out_needed, stats)
+
+    def _schedule_compiled(self, kernel, key, level, kind, start, switch, stats) -> Transitions:
+        prev, f64 = self.plan, np.float64
+        counts = np.zeros(7, np.int64)
+        k_key, k_lo, k_hi = self._kept
+        (out_key, out_from, out_to, out_t0, out_t1, plan_from, plan_t1, n_key, n_lo, n_hi, o_key, o_lo,
+         o_hi) = kernel(key, level, np.zeros(0, np.int8) if kind is None else kind, kind is not None,
+                        np.asarray(prev.key, np.int64), np.asarray(prev.level_from, f64),
+                        np.asarray(prev.level_to, f64), np.asarray(prev.t0, f64), np.asarray(prev.t1, f64),
+                        float(start), float(switch), self.tau,
+                        np.asarray(k_key, np.int64), np.asarray(k_lo, f64), np.asarray(k_hi, f64), counts)
+        stats.update(zip(("up", "down", "collapsed", "switches", "appear", "vanish", "steady"), counts.tolist()))
+        self.plan = LevelRamps(key, plan_from, level, np.full(key.size, float(switch)), plan_t1)
+        self._kept, self.switch = (n_key, n_lo, n_hi), switch
+        return Transitions(out_key, out_from, out_to, out_t0, out_t1, o_key, o_lo, o_hi, stats)
 
     @staticmethod
     def _union(a, b):

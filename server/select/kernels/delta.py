@@ -1,11 +1,11 @@
-"""A delta's bookkeeping in compiled passes (numba): Zach's morph marking, and the expansion of a schedule's
-level ranges into representations with the client-cache mirror's update.
+"""A delta's bookkeeping in compiled passes (numba): Zach's morph marking, the morph schedule's step, and the
+expansion of a schedule's level ranges into representations with the client-cache mirror's update.
 
 Each is a handful of numpy calls per level of a hierarchy, per range or per set
 operation (``np.unique``, ``union1d``, ``isin``, ``lexsort``) on a few thousand
 ids — calls that cost more than their arithmetic. Here each is one pass over the
-ids with a scratch flag per representation. ``morph.mark``, ``pipeline._expand``
-and ``mirror.CacheMirror.plan`` stay the references, and the tests compare.
+ids with a scratch flag per representation. ``morph.mark``, ``MorphScheduler.schedule``,
+``pipeline._expand`` and ``mirror.CacheMirror.plan`` stay the references, and the tests compare.
 
 Pure functions of arrays (no clock, no I/O).
 """
@@ -18,7 +18,7 @@ import numpy as np
 
 from .jit import jit
 
-__all__ = ["mark", "plan", "union_ranges", "compile_all"]
+__all__ = ["mark", "plan", "union_ranges", "schedule", "compile_all"]
 
 
 @jit()
@@ -221,6 +221,83 @@ def union_ranges(k1, lo1, hi1, k2, lo2, hi2):
     return key[:t].copy(), lo[:t].copy(), hi[:t].copy()
 
 
+@jit()
+def schedule(key, level, kind, has_kind, p_key, p_from, p_to, p_t0, p_t1, start, switch, tau, k_key, k_lo, k_hi,
+             stats):
+    """``MorphScheduler.schedule`` after a previous plan (not a reset): key, level (s,) the new solution sorted by
+    key, kind its marking (used iff ``has_kind``); p_* the previous plan (sorted by key); k_* what the last
+    schedule kept needed. Writes stats = [up, down, collapsed, switches, appear, vanish, steady]; returns the
+    ramps (key, from, to, t0, t1), the new plan's level_from and t1, and the needed (key, lo, hi) before and
+    after the union with k_*."""
+    s, p = key.shape[0], p_key.shape[0]
+    t_up = switch + tau
+    pos = np.empty(s, np.int64)
+    both = np.zeros(s, np.bool_)
+    up = np.zeros(s, np.bool_)
+    down = np.zeros(s, np.bool_)
+    p_level = np.empty(s)
+    a_level = np.empty(s)
+    n_up = n_down = collapsed = switches = appear = steady = 0
+    j = 0
+    for i in range(s):
+        while j < p and p_key[j] < key[i]:  # searchsorted, left: key and p_key both sorted
+            j += 1
+        pos[i] = j
+        if j < p and p_key[j] == key[i]:
+            both[i] = True
+            p_level[i] = p_to[j]
+            span = p_t1[j] - p_t0[j]  # ``ramp_levels`` at start
+            f = (start - p_t0[j]) / span if span > 0 else (1.0 if start >= p_t1[j] else 0.0)
+            f = min(max(f, 0.0), 1.0)
+            a_level[i] = p_from[j] + (p_to[j] - p_from[j]) * f
+            if has_kind:
+                up[i] = kind[i] > 0 and level[i] > p_level[i]
+                down[i] = kind[i] < 0 and level[i] < p_level[i]
+            else:
+                up[i] = level[i] > p_level[i]
+                down[i] = level[i] < p_level[i]
+            ramping = p_from[j] != p_to[j] and p_t1[j] > start
+            n_up += up[i]
+            n_down += down[i]
+            collapsed += down[i] and ramping
+            steady += not up[i] and not down[i]
+        else:
+            p_level[i] = a_level[i] = np.nan
+            appear += 1
+            if has_kind:
+                switches += kind[i] != 0
+    stats[0], stats[1], stats[2], stats[3] = n_up, n_down, collapsed, switches
+    stats[4], stats[5], stats[6] = appear, p - (s - appear), steady
+    m = n_down + n_up
+    out_key, out_from, out_to = np.empty(m, np.int64), np.empty(m), np.empty(m)
+    out_t0, out_t1 = np.empty(m), np.empty(m)
+    plan_from, plan_t1 = np.empty(s), np.empty(s)
+    lo_prev, hi_prev = np.empty(p), np.empty(p)
+    for q in range(p):
+        lo_prev[q] = min(p_from[q], p_to[q])
+        hi_prev[q] = max(p_from[q], p_to[q])
+    lo_new, hi_new = np.empty(s), np.empty(s)
+    d = 0
+    u = n_down
+    for i in range(s):
+        if down[i]:
+            # Mesh morphs go between whole levels: from the nearer whole level (``np.round``: half to even).
+            out_key[d], out_from[d] = key[i], np.rint(a_level[i]) if has_kind else a_level[i]
+            out_to[d], out_t0[d], out_t1[d] = level[i], start, switch
+            lo_prev[pos[i]] = min(lo_prev[pos[i]], level[i])
+            d += 1
+        elif up[i]:
+            out_key[u], out_from[u], out_to[u], out_t0[u], out_t1[u] = key[i], p_level[i], level[i], switch, t_up
+            u += 1
+        plan_from[i] = p_level[i] if up[i] else level[i]
+        plan_t1[i] = t_up if up[i] else switch
+        lo_new[i] = min(plan_from[i], level[i])
+        hi_new[i] = max(plan_from[i], level[i])
+    nk, nlo, nhi = union_ranges(p_key, lo_prev, hi_prev, key, lo_new, hi_new)
+    ok, olo, ohi = union_ranges(nk, nlo, nhi, k_key, k_lo, k_hi)
+    return out_key, out_from, out_to, out_t0, out_t1, plan_from, plan_t1, nk, nlo, nhi, ok, olo, ohi
+
+
 def _frozen(a):
     a.flags.writeable = False  # as the scene's shared tables are (``SceneTable``): their own specialisation
     return a
@@ -236,3 +313,6 @@ def compile_all() -> None:
          np.zeros(m, np.bool_), np.zeros(m, np.bool_), np.full(m, -1, np.int64), 1, False, 0)
     k, f = np.array([1, 3], np.int64), np.array([0.0, 1.0])
     union_ranges(k, f, f, k, f, f)
+    for has_kind in (True, False):
+        schedule(k, f, np.array([1, -1], np.int8), has_kind, k, f, f, f, f, 0.0, 0.5, 0.5, k, f, f,
+                 np.zeros(7, np.int64))

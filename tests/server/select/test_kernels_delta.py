@@ -118,3 +118,35 @@ def test_range_union_compiled_equals_the_reference(seed, n1, n2):
     got = _with(True, lambda: MorphScheduler._union(a, b))
     for x, y in zip(ref, got):
         assert np.array_equal(x, y) and x.dtype == y.dtype
+
+
+@settings(max_examples=100, deadline=None)
+@given(seed=st.integers(0, 2**31), steps=st.integers(1, 10), marked=st.booleans(), late=st.booleans())
+def test_morph_schedule_compiled_equals_the_reference(seed, steps, marked, late):
+    """A run of schedules (solutions of random objects and levels, marked or compared by level, a delta now and
+    then late so that ramps are cut mid-way): every output of the compiled step equals the reference's."""
+    from server.select.morph import MorphScheduler
+
+    rng = np.random.default_rng(seed)
+    tau = 0.5
+    ref, got = MorphScheduler(tau), MorphScheduler(tau)
+    switch = 0.0
+    for step in range(steps):
+        key = rng.permutation(rng.choice(60, rng.integers(0, 40), replace=False)).astype(np.int64)
+        level = rng.integers(0, 4, key.size).astype(np.float64)
+        if not marked:
+            level += np.round(rng.random(key.size), 1) * (rng.random(key.size) < 0.3)
+        kind = rng.integers(-1, 2, key.size).astype(np.int8) if marked else None
+        start = switch - tau + (rng.random() * tau if late and rng.random() < 0.5 else 0.0)
+        reset = step == 0 or rng.random() < 0.1
+        a = _with(False, lambda: ref.schedule(key, level, start, switch, reset=reset, kind=kind))
+        b = _with(True, lambda: got.schedule(key, level, start, switch, reset=reset, kind=kind))
+        for name in ("key", "level_from", "level_to", "t0", "t1", "needed_key", "needed_lo", "needed_hi"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True), name
+        assert a.stats == b.stats and list(a.stats) == list(b.stats)
+        for name in ("key", "level_from", "level_to", "t0", "t1"):
+            assert np.array_equal(getattr(ref.plan, name), getattr(got.plan, name)), name
+        for x, y in zip(ref._kept, got._kept):
+            assert np.array_equal(x, y)
+        switch += tau
