@@ -344,6 +344,18 @@ def resolved_accuracy(factors: BenefitFactors, hierarchical: bool = False, error
     return cache[key]
 
 
+def with_algorithms(factors: BenefitFactors, algorithms) -> BenefitFactors:
+    """``factors`` naming the offered rendering algorithms (indices into ``proto.messages.ALGORITHMS``), kept on
+    ``factors`` as ``resolved_accuracy`` keeps its copies (a session asks for the same one every τ)."""
+    from proto.messages import ALGORITHMS
+
+    key = tuple(int(a) for a in algorithms)
+    cache = vars(factors).setdefault("_named", {})
+    if key not in cache:
+        cache[key] = replace(factors, algorithm_names=tuple(ALGORITHMS[a] for a in key))
+    return cache[key]
+
+
 def benefit_matrix(
     size: np.ndarray,
     faces: np.ndarray,

@@ -14,12 +14,10 @@ keeps the arrays derived from a view's static fields with the view.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from . import kernels
-from .benefit import benefit_matrix
+from .benefit import benefit_matrix, importance, with_algorithms
 from .camera import centre_offset, cull_boxes, screen_size, screen_speed
 
 __all__ = ["cached", "option_arrays", "cull", "project", "cull_project_many", "benefit_cost", "node_size", "benefit_kernel"]
@@ -177,9 +175,7 @@ def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=
     rep, valid, faces, vertices = option_arrays(lv, rows, r)
     alg = np.asarray(algorithms, np.int64)[np.arange(faces.shape[1]) % r][None, :]
     if r > 1 or tuple(algorithms) != (0,):
-        from proto.messages import ALGORITHMS
-
-        factors = replace(factors, algorithm_names=tuple(ALGORITHMS[a] for a in algorithms))
+        factors = with_algorithms(factors, algorithms)
     previous = None
     if memory is not None and memory.option is not None:
         previous = memory.option[lv.ids[rows]] if lv.ids is not None else memory.option[rows]
@@ -201,8 +197,13 @@ def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=
     # Only a view holding textured representations pays for the texture's share of accuracy.
     textured = (np.take(lv.rep_textured, rep) & valid) if getattr(lv, "rep_textured", None) is not None else None
     if kern is not None:
+        imp = None
+        if klass is not None and factors.importance:
+            table = np.asarray(scene.importance, np.float64)
+            every = cached(lv, ("importance", table.tobytes()), lambda: importance(lv.object_class, table))
+            imp = np.take(every, rows)  # the rows' class weights, from the view's once per importance table
         benefit = benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass,
-                                 scene.importance, previous, original, error, extent, textured)
+                                 scene.importance, previous, original, error, extent, textured, imp)
     else:
         benefit = np.zeros(faces.shape)
         for j in range(len(cams)):
@@ -255,14 +256,15 @@ def node_size(lv, rows: np.ndarray, size: np.ndarray) -> np.ndarray:
 
 
 def benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r, factors, klass, table, previous,
-                   original=None, error=None, extent=None, textured=None):
+                   original=None, error=None, extent=None, textured=None, importance_rows=None):
     """``benefit_matrix`` summed over the cameras in one compiled pass (same factors, same arithmetic).
 
     original : (v,) Zach's #originalFaces (``benefit_matrix``'s ``original_faces``), None: each row's most faces
     error, extent : (v, K) geometric error per option and (v,) box diagonals, for "sse" accuracy
     textured : (v, K) bool, the option's representation carries a texture (None: none does)
+    importance_rows : (v,) the rows' Importance weights when the caller has them (else from ``klass``, ``table``)
     """
-    from .benefit import ALGORITHM_SAMPLES, importance, texture_accuracy
+    from .benefit import ALGORITHM_SAMPLES, texture_accuracy
 
     names = factors.algorithm_names
     if r < 1 or r > len(names):
@@ -279,8 +281,11 @@ def benefit_kernel(kern, size, offset, speed, weight, faces, vertices, valid, r,
     per_vertex = np.array([ALGORITHM_SAMPLES.get(names[a], "faces") == "vertices" for a in range(r)])
     exponent = np.array([float(factors.exponent[names[a]]) for a in range(r)])
     empty2 = np.zeros((0, 0))
-    imp = (importance(klass, table) if factors.importance and klass is not None and table is not None
-           else np.zeros(0))
+    if importance_rows is not None:
+        imp = np.asarray(importance_rows, np.float64)
+    else:
+        imp = (importance(klass, table) if factors.importance and klass is not None and table is not None
+               else np.zeros(0))
     off = offset if factors.focus else empty2
     moving = np.array([factors.motion and s is not None for s in speed])
     spd = np.stack([np.zeros(size.shape[1]) if s is None else s for s in speed]) if moving.any() else size
