@@ -81,8 +81,10 @@ def solve(
             live &= chain < first[obj]
         d_i = int(np.argmax(live)) if live.any() else -1
         v_d = float(value[d_i]) if d_i >= 0 else -np.inf
-        fits = ~active & (a_cost <= remaining)
-        a_i = int(np.argmax(np.where(fits, a_val, -np.inf))) if fits.any() else -1
+        # Only an activation that fits and gains (a weightless group's value is −inf): argmax over none of
+        # them would name the first group, fitting or not.
+        offer = np.where(~active & (a_cost <= remaining), a_val, -np.inf)
+        a_i = int(np.argmax(offer)) if m and offer.max() > -np.inf else -1
         v_a = float(a_val[a_i]) if a_i >= 0 else -np.inf
         slope_d = max(v_d, v_a)
 
