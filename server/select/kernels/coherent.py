@@ -86,26 +86,33 @@ def coherent(benefit, cost, valid, cap, previous, theta, width, capacity, keep, 
     best, best_b = -1, -np.inf
     kk = k
     do_prev = previous.size == n
+    cap_f = min(cap, 1.7976931348623157e308)  # also ``cost < inf``
     for i in range(n):
         # The usual concave object inline (branch-free, as in ``hull``); the others in _object_hull.
-        bad_u, bad_c = 0, 0
+        good, usable = True, True
+        f_hi, f_lo = 0, 0
         pc, pb, pv = 0.0, 0.0, np.inf
-        bo, bb = -1, -np.inf
         sc[0], sb[0], ss[0], so[0] = 0.0, 0.0, np.inf, -1
         for o in range(k):
             c = cost[i, o]
             b = benefit[i, o]
             dc = c - pc
             v = (b - pb) / dc
-            bad_u += (valid[i, o] == 0) + (not c <= cap) + (not c < np.inf) + (not dc > 0.0) + (not abs(b) < np.inf)
-            bad_c += (not v > 0.0) + (not v < pv)
-            bo = o if b > bb else bo
-            bb = max(bb, b)
+            # Usable, cost rising, value positive and falling. An infinite or NaN benefit makes v fail a test.
+            use = (valid[i, o] != 0) & (c <= cap_f) & (dc > 0.0)
+            usable &= use & (abs(b) < np.inf)
+            good &= use & (v > 0.0) & (v < pv)
+            f_hi += v > hi
+            f_lo += v > lo
             sc[o + 1], sb[o + 1], ss[o + 1], so[o + 1] = c, b, v, o
             pc, pb, pv = c, b, v
-        if bad_u + bad_c == 0:
-            top = k
-        elif bad_u == 0:
+        if good:
+            top, bo, bb = k, k - 1, pb  # benefit rises along the options: the last is the best
+        elif usable:
+            bo, bb = -1, -np.inf
+            for o in range(k):
+                bo = o if sb[o + 1] > bb else bo
+                bb = max(bb, sb[o + 1])
             # Every option usable, cost rising, but not concave (say the coarsest level lies under the
             # chord): the chain runs in place over the points as they are.
             top = 0
@@ -127,10 +134,13 @@ def coherent(benefit, cost, valid, cap, previous, theta, width, capacity, keep, 
         if bb > best_b:
             best, best_b = i * k + bo, bb
         cands += top
-        s_hi, s_lo = 0, 0
-        for j in range(1, top + 1):
-            s_hi += ss[j] > hi
-            s_lo += ss[j] > lo
+        if good:
+            s_hi, s_lo = f_hi, f_lo
+        else:
+            s_hi, s_lo = 0, 0
+            for j in range(1, top + 1):
+                s_hi += ss[j] > hi
+                s_lo += ss[j] > lo
         steps[i] = s_hi
         fixed += sc[s_hi]
         rest_w += sc[top] - sc[s_lo]
