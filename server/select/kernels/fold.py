@@ -179,6 +179,55 @@ def _frame(c, z, r):
 
 
 @jit()
+def _solve_small(m, rhs, na):
+    """lstsq(m, rhs, rcond=eps·na) for ``_project``'s symmetric m (a principal block of the covariance, a few
+    rows): its singular values are |eigenvalues|, so cyclic Jacobi rotations give the same minimum-norm answer
+    (directions under rcond × the largest dropped) without LAPACK's workspace and SVD setup."""
+    a = m.copy()
+    v = np.eye(na)
+    for _ in range(50):
+        off, diag = 0.0, 0.0
+        for p in range(na):
+            diag += a[p, p] * a[p, p]
+            for q in range(p + 1, na):
+                off += a[p, q] * a[p, q]
+        if not off > 1e-32 * diag:
+            break
+        for p in range(na - 1):
+            for q in range(p + 1, na):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for r in range(na):  # columns p, q of a·J
+                    arp, arq = a[r, p], a[r, q]
+                    a[r, p], a[r, q] = c * arp - s * arq, s * arp + c * arq
+                for r in range(na):  # rows p, q of Jᵀ·a
+                    apr, aqr = a[p, r], a[q, r]
+                    a[p, r], a[q, r] = c * apr - s * aqr, s * apr + c * aqr
+                for r in range(na):
+                    vrp, vrq = v[r, p], v[r, q]
+                    v[r, p], v[r, q] = c * vrp - s * vrq, s * vrp + c * vrq
+    top = 0.0
+    for i in range(na):
+        top = max(top, abs(a[i, i]))
+    x = np.zeros(na)
+    for i in range(na):
+        lam = a[i, i]
+        if abs(lam) > _EPS * na * top:
+            d = 0.0
+            for r in range(na):
+                d += v[r, i] * rhs[r]
+            d /= lam
+            for r in range(na):
+                x[r] += v[r, i] * d
+    return x
+
+
+@jit()
 def _project(j, k, phi, cov, scale, lower, upper):
     """``RobustRLS._project``: θ into its box, the free coordinates moved by their conditional mean."""
     lo = np.empty(k)
@@ -209,7 +258,7 @@ def _project(j, k, phi, cov, scale, lower, upper):
             rhs[p] = phi[j, a[p]] - bound[a[p]]
             for q in range(na):
                 m[p, q] = cov[j, a[p], a[q]]
-        shift = np.linalg.lstsq(m, rhs, _EPS * na)[0]
+        shift = _solve_small(m, rhs, na)
         for i in range(k):
             s = 0.0
             for q in range(na):
@@ -223,18 +272,27 @@ def _project(j, k, phi, cov, scale, lower, upper):
 
 @jit()
 def _median_abs(buf, n):
-    a = np.sort(np.abs(buf[:n]))
+    """statistics.median of |buf[:n]|, by an insertion sort (n is the residual window: a dozen or two)."""
+    a = np.empty(n)
+    for i in range(n):
+        x = abs(buf[i])
+        p = i
+        while p > 0 and a[p - 1] > x:
+            a[p] = a[p - 1]
+            p -= 1
+        a[p] = x
     h = n // 2
     return a[h] if n % 2 == 1 else (a[h - 1] + a[h]) / 2
 
 
 @jit()
 def _update(j, k, x, y, rescale, has_rescale, phi, cov, scale, lower, upper, rs, rp, res, res_n, up, up_n, down,
-            down_n):
-    """``RobustRLS.update``: fold one row (x, y); returns its relative residual before the update (nan: dropped)."""
+            down_n, ws, wc):
+    """``RobustRLS.update``: fold one row (x, y); returns its relative residual before the update (nan: dropped).
+    ws (≥ 6, K), wc (K, K): scratch."""
     forgetting, huber, floor, reopen = rp[j, 0], rp[j, 1], rp[j, 2], rp[j, 3]
     slack, threshold, clip, cap = rp[j, 4], rp[j, 5], rp[j, 6], rp[j, 7]
-    b = np.empty(k)
+    b = ws[0, :k]
     finite = True
     dot = 0.0
     for i in range(k):
@@ -244,8 +302,10 @@ def _update(j, k, x, y, rescale, has_rescale, phi, cov, scale, lower, upper, rs,
     e0 = e = 1.0 - dot
     if not (math.isfinite(e) and finite):
         return np.nan
-    saved_phi = phi[j, :k].copy()
-    saved_cov = cov[j, :k, :k].copy()
+    saved_phi = ws[5, :k]
+    saved_cov = wc[:k, :k]
+    saved_phi[:] = phi[j, :k]
+    saved_cov[:, :] = cov[j, :k, :k]
     saved_hi, saved_lo = rs[j, 0], rs[j, 1]
     sigma = np.inf if res_n[j] < 5 else max(floor, 1.4826 * _median_abs(res[j], res_n[j]))
     c = huber * sigma
@@ -263,7 +323,7 @@ def _update(j, k, x, y, rescale, has_rescale, phi, cov, scale, lower, upper, rs,
     elif e < -c:
         down_n[j] = _push(down[j], down_n[j], ratio)
     change = max(rs[j, 0], rs[j, 1]) > threshold
-    share = np.empty(k)
+    share = ws[1, :k]
     for i in range(k):
         share[i] = min(abs(b[i]) * max(phi[j, i], 1.0), 1.0)
     if change:
@@ -294,13 +354,13 @@ def _update(j, k, x, y, rescale, has_rescale, phi, cov, scale, lower, upper, rs,
         e = 1.0 - dot
         w = 1.0
         rs[j, 3] += 1
-    inflate = np.empty(k)
+    inflate = ws[2, :k]
     for i in range(k):
         inflate[i] = 1.0 / math.sqrt(1.0 - (1.0 - forgetting) * share[i])
     for p in range(k):
         for q in range(k):
             cov[j, p, q] *= inflate[p] * inflate[q]
-    pb = np.empty(k)
+    pb = ws[3, :k]
     bpb = 0.0
     for p in range(k):
         s = 0.0
@@ -309,7 +369,7 @@ def _update(j, k, x, y, rescale, has_rescale, phi, cov, scale, lower, upper, rs,
         pb[p] = s
         bpb += b[p] * s
     den = 1.0 + w * bpb
-    g = np.empty(k)
+    g = ws[4, :k]
     for p in range(k):
         g[p] = w * pb[p] / den
         phi[j, p] += g[p] * e
@@ -356,18 +416,18 @@ def _update(j, k, x, y, rescale, has_rescale, phi, cov, scale, lower, upper, rs,
 
 @jit()
 def _rung(j, r, t, z, least, light, phi, cov, scale, lower, upper, seen, rs, rp, res, res_n, up, up_n, down,
-          down_n, fill, fill_n, alg, mp):
-    """``_Rung.observe``: fold frame (t, z) into rung j."""
+          down_n, fill, fill_n, alg, mp, ws, wc):
+    """``_Rung.observe``: fold frame (t, z) into rung j. ws (10, K), wc (K, K): scratch."""
     k = _k(j, r)
     big = 3 * r + 3
-    th = np.empty(big)
+    th = ws[6]
     if j > 0:
         upper[j, 0] = least
     first_held = 1 if j > 0 else 0
     if light:
         for i in range(first_held, k):
             lower[j, i] = upper[j, i] = phi[j, i] * scale[j, i]
-    x = np.empty(k)
+    x = ws[7, :k]
     if j == 0:
         s = 0.0
         for a in range(r):
@@ -416,7 +476,7 @@ def _rung(j, r, t, z, least, light, phi, cov, scale, lower, upper, seen, rs, rp,
     rescale = np.zeros(k, np.bool_)
     has_rescale = False
     if j == 2:
-        c = np.empty(big)
+        c = ws[8]
         _full(j, r, phi, scale, seen, alg, th, c)
         g, f = _sides(c, z, r)
         is_fill = f > g * (1.0 + TIE)
@@ -438,8 +498,8 @@ def _rung(j, r, t, z, least, light, phi, cov, scale, lower, upper, seen, rs, rp,
             x[i] = 0.0
     fill_n[j] = _push(fill[j], fill_n[j], 1 if is_fill else 0)
     _update(j, k, x, t, rescale, has_rescale, phi, cov, scale, lower, upper, rs, rp, res, res_n, up, up_n, down,
-            down_n)
-    c = np.empty(big)
+            down_n, ws, wc)
+    c = ws[9]
     _full(j, r, phi, scale, seen, alg, th, c)
     lam = mp[0]
     rs[j, 4] = lam * rs[j, 4] + _frame(c, z, r) - c[0]
@@ -508,11 +568,16 @@ def _choose(err, err_n, mi, mp, window):
             mi[0] = best
             mi[2] = 0
             return
-        whole = np.empty(3)
         _scores(err, err_n, recent, sc)
-        _scores(err, err_n, window, whole)
         limit = (1.0 + within) * sc.min()
-        limit_whole = (1.0 + within) * whole.min()
+        # The whole window's scores only judge a step down: summed (exactly, as math.fsum) only when one is asked.
+        whole = np.empty(3)
+        down = False
+        for o in range(chosen):
+            down |= sc[o] <= limit
+        if down:
+            _scores(err, err_n, window, whole)
+        limit_whole = (1.0 + within) * whole.min() if down else np.inf
         target = -1
         for o in range(3):
             if sc[o] <= limit and (o >= chosen or whole[o] <= limit_whole):
@@ -543,6 +608,7 @@ def fold(r, times, z, only_least, phi, cov, scale, lower, upper, seen, rs, rp, r
     big = 3 * r + 3
     th = np.empty(big)
     c = np.empty(big)
+    ws, wc = np.empty((10, big)), np.empty((big, big))  # the rungs' scratch, allocated once per fold
     tail_min, slack, rise = mp[5], mp[6], mp[7]
     window = err.shape[1]
     for f in range(times.shape[0]):
@@ -560,7 +626,7 @@ def fold(r, times, z, only_least, phi, cov, scale, lower, upper, seen, rs, rp, r
             guess = _frame(c, zf, r)
             err_n[j] = _push(err[j], err_n[j], abs(guess - t) / t)
             _rung(j, r, t, zf, slack * mf[0], max(guess, t) < tail_min, phi, cov, scale, lower, upper, seen, rs,
-                  rp, res, res_n, up, up_n, down, down_n, fill, fill_n, alg, mp)
+                  rp, res, res_n, up, up_n, down, down_n, fill, fill_n, alg, mp, ws, wc)
         fs = 0.0
         vs = 0.0
         for a in range(r):

@@ -126,6 +126,24 @@ def test_fsum_is_correctly_rounded():
     assert fold_kernel._fsum(np.array([1e100, 1.0, -1e100, 1e-100]), 0, 4) == math.fsum([1e100, 1.0, -1e100, 1e-100])
 
 
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 12), st.integers(0, 12), st.one_of(st.just(0.0), st.floats(1e-9, 1e-3)), st.integers(0, 2**32 - 1))
+def test_the_projections_solve_is_lstsqs_minimum_norm_answer(na, rank, ridge, seed):
+    """``_project``'s solve of a principal block of the covariance (symmetric, often near-singular: collinear
+    terms) gives lstsq's answer, the dropped directions included."""
+    rng = np.random.default_rng(seed)
+    b = rng.standard_normal((na, min(rank, na))) * np.exp(3.0 * rng.standard_normal(min(rank, na)))
+    m = b @ b.T + ridge * np.diag(rng.random(na))
+    m = (m + m.T) / 2
+    rhs = rng.standard_normal(na)
+    want = np.linalg.lstsq(m, rhs, rcond=fold_kernel._EPS * na)[0]
+    got = fold_kernel._solve_small(m, rhs, na)
+    cond = np.linalg.cond(m) if m.any() else 1.0
+    scale = max(np.abs(want).max(), 1e-300)
+    if cond < 1e8 or rank < na and ridge == 0.0:
+        assert np.abs(got - want).max() <= 1e-6 * scale
+
+
 def test_a_snapshot_keeps_the_frames_not_yet_folded():
     """A session saves more often than it selects: its snapshot holds the frames still queued, unfolded, and the
     restored model folds them as the original does."""
