@@ -26,7 +26,7 @@ import numpy as np
 from .jit import jit
 
 __all__ = ["RADIX_BITS", "RADIX_OCTAVES", "RADIX_SHIFT", "RADIX_LOW", "RADIX_BINS", "radix_bin", "hull",
-           "start", "object_hull", "warm_up_inputs", "compile_all"]
+           "start", "object_hull", "general_hull", "warm_up_inputs", "compile_all"]
 
 
 #: Radix bins of an increment's value: the float64 bit pattern's exponent and top RADIX_BITS mantissa
@@ -112,7 +112,7 @@ def hull(benefit, cost, valid, cap, previous, value, bits, d_cost, opt, count, b
                 begin[i] = st
             continue
         # Options unusable or out of cost order: the general hull (numba inlines it).
-        top, bo, bb = object_hull(benefit, cost, valid, cap, i, order, sc, sb, ss, so)
+        top, bo, bb = general_hull(benefit, cost, valid, cap, i, order, sc, sb, ss, so)
         if bb > best_b:
             best, best_b = i * k + bo, bb
         count[i] = top
@@ -196,6 +196,15 @@ def object_hull(benefit, cost, valid, cap, i, order, sc, sb, ss, so):
         pc, pb, pv = c, b, v
     if bad == 0:
         return k, k - 1, pb
+    return general_hull(benefit, cost, valid, cap, i, order, sc, sb, ss, so)
+
+
+@jit(inline="always")
+def general_hull(benefit, cost, valid, cap, i, order, sc, sb, ss, so):
+    """``object_hull`` for an object known not to be the usual concave one (options unusable, duplicated or
+    out of cost order): usable options sorted by cost, then the monotone chain."""
+    k = benefit.shape[1]
+    sc[0], sb[0], ss[0], so[0] = 0.0, 0.0, np.inf, -1
     best_o, best_b = -1, -np.inf
     m = 0
     ascending = True
