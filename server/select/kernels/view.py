@@ -256,7 +256,8 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
     focus_strength, motion_strength : the factors' slopes (used only when their input is given)
     The factors multiply in ``benefit_matrix``'s order, so the sums are the same to the last bit; what
     does not depend on the camera (hysteresis weights, accuracy below the pixel cap) is computed once per row,
-    and a camera in which the row covers no pixels adds exactly nothing (with Size on) and is skipped.
+    a camera in which the row covers no pixels adds exactly nothing (with Size on) and is skipped, and only
+    the row's valid options (and its previous one) are priced: a view's rows have up to K options, most far fewer.
     """
     nc = size.shape[0]
     v, kk = faces.shape
@@ -269,9 +270,16 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
     acc = np.empty(kk)
     capped = np.empty(n_alg)
     keep = np.ones(kk)
+    ks = np.empty(kk, np.int64)
     for i in range(v):
+        # The options worth pricing: valid ones, and the previous one (hysteresis reads its benefit).
+        prev = previous[i] if use_hysteresis else -1
+        nk = 0
         for k in range(kk):
             out[i, k] = 0.0
+            if valid[i, k] or k == prev:
+                ks[nk] = k
+                nk += 1
         orig = 0.0
         if accuracy_mode == ACCURACY_ZACH:
             if original.shape[0] > 0:
@@ -282,14 +290,15 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                     orig = max(orig, np.float64(faces[i, k]))
             orig = max(orig, 1.0)
         elif accuracy_mode == ACCURACY_FS:
-            for k in range(kk):
+            for t in range(nk):
+                k = ks[t]
                 r = k % n_alg
                 samples[k] = np.float64(vertices[i, k]) if per_vertex[r] else np.float64(faces[i, k])
                 acc[k] = 1.0 - BASE_ERROR / _pow(max(samples[k], 1.0), exponent[r])
-        prev = previous[i] if use_hysteresis else -1
         hysteresis = prev >= 0 and prev < kk
         if hysteresis:
-            for k in range(kk):
+            for t in range(nk):
+                k = ks[t]
                 d_level = abs(k // n_alg - prev // n_alg)
                 d_alg = abs(k % n_alg - prev % n_alg)
                 keep[k] = 1.0 / (1.0 + level_weight * d_level + algorithm_weight * d_alg)
@@ -310,10 +319,8 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                 mo = 1.0 / (1.0 + motion_strength * max(speed[j, i], 0.0) * frame_time / edge)
             # Pixels per metre of the row's box at this camera: the same for every option of the row.
             per_m = math.sqrt(2.0 * max(s, 0.0)) / max(extent[i], 1e-12) if accuracy_mode == ACCURACY_SSE else 0.0
-            for k in range(kk):
-                if not valid[i, k] and k != prev:
-                    b[k] = 0.0  # zeroed below; only the previous option's benefit is read (hysteresis)
-                    continue
+            for t in range(nk):
+                k = ks[t]
                 # benefit_matrix's order: Size, Accuracy (the texture's share last), Importance, Focus, Motion.
                 x = 1.0
                 if use_size:
@@ -337,15 +344,14 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                 b[k] = x
             if hysteresis:
                 at_prev = b[prev]
-                for k in range(kk):
+                for t in range(nk):
+                    k = ks[t]
                     b[k] = b[k] - (1.0 - keep[k]) * abs(b[k] - at_prev)
             wj = weight[j]
-            for k in range(kk):
+            for t in range(nk):
+                k = ks[t]
                 if valid[i, k]:
                     out[i, k] += wj * b[k]
-        for k in range(kk):
-            if not valid[i, k]:
-                out[i, k] = 0.0
 
 
 def compile_all() -> None:
