@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import example, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from server.select import cost_online, rls
@@ -136,12 +136,16 @@ def test_the_projections_solve_is_lstsqs_minimum_norm_answer(na, rank, ridge, se
     m = b @ b.T + ridge * np.diag(rng.random(na))
     m = (m + m.T) / 2
     rhs = rng.standard_normal(na)
-    want = np.linalg.lstsq(m, rhs, rcond=fold_kernel._EPS * na)[0]
+    cut = fold_kernel._EPS * na
+    s = np.linalg.svd(m, compute_uv=False)
+    # A singular value within a factor 10 of lstsq's cut is dropped or kept by rounding: either answer is right.
+    assume(not ((s > cut * s[0] / 10) & (s < cut * s[0] * 10)).any())
+    want = np.linalg.lstsq(m, rhs, rcond=cut)[0]
     got = fold_kernel._solve_small(m, rhs, na)
-    cond = np.linalg.cond(m) if m.any() else 1.0
+    kept = s[s > cut * s[0]]
+    cond = kept[0] / kept[-1] if kept.size else 1.0  # of the part both solve: their rounding differs by ~eps·cond
     scale = max(np.abs(want).max(), 1e-300)
-    if cond < 1e8 or rank < na and ridge == 0.0:
-        assert np.abs(got - want).max() <= 1e-6 * scale
+    assert np.abs(got - want).max() <= max(1e-9, 1e-13 * na * cond) * scale
 
 
 def test_a_snapshot_keeps_the_frames_not_yet_folded():
