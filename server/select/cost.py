@@ -72,6 +72,10 @@ class FrameCostModel(Protocol):
         """Seconds per (object, level, algorithm) tuple, F&S's terms, without the frame overhead."""
         ...
 
+    def tuple_coefficients(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """``predict_terms``' coefficients now in force: (R,) C1, C2, C3 per algorithm and C0 per draw."""
+        ...
+
     def splat_cost(self, splats) -> np.ndarray:
         """Seconds to draw that many point splats."""
         ...
@@ -202,6 +206,10 @@ class CostModel:
             return self.c_vert
         scale = np.array([ALGORITHM_SCALE[min(r, len(ALGORITHM_SCALE) - 1)] for r in range(self.algorithms)])
         return self.c_vertex * scale
+
+    def tuple_coefficients(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """(R,) C1, C2, C3 per algorithm and C0 per draw: ``predict_terms``' coefficients."""
+        return self.c_poly, self.vertex_coefficients(), self.c_pixel, float(self.c_draw)
 
     def predict_terms(
         self,

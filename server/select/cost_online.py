@@ -514,6 +514,11 @@ class OnlineCostModel:
         c, r = self.rungs[self.chosen].full(), self.algorithms
         return c[0], c[1 : 1 + r], c[1 + r : 1 + 2 * r], c[1 + 2 * r : 1 + 3 * r], c[-2], c[-1]
 
+    def tuple_coefficients(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """(R,) C1, C2, C3 per algorithm and C0 per draw of the chosen model: ``predict_terms``' coefficients."""
+        _, c1, c2, c3, c_draw, _ = self._terms()
+        return c1, c2, c3, float(c_draw)
+
     def predict_terms(self, faces, vertices, pixels, algorithm=0, draws=1.0) -> np.ndarray:
         """Seconds per tuple, without the frame overhead, broadcasting like ``CostModel.predict_terms``:
         max(C1[R]·faces + C2[R]·vertices, C3[R]·pixels) + C0·draws — F&S's per-object cost."""

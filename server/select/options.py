@@ -69,9 +69,18 @@ def option_errors(lv, rows: np.ndarray, cols: int, algorithms: int = 1) -> tuple
     return (error if error.shape[1] == cols else np.ascontiguousarray(error[:, :cols])), np.take(extent, rows)
 
 
-def _tuple_cost(cost_model, faces, vertices, pixels, algorithm):
-    """(v, K) seconds per option: the model's F&S terms, one draw each."""
-    return cost_model.predict_terms(faces, vertices, pixels, algorithm, 1.0)
+def _tuple_cost(cost_model, faces, vertices, pixels, alg, valid, kern):
+    """(v, K) seconds per option, inf where invalid: the model's F&S terms, one draw each. pixels (v,), alg (K,)."""
+    if kern is None:
+        return np.where(valid, cost_model.predict_terms(faces, vertices, pixels[:, None], alg[None, :], 1.0), np.inf)
+    c_poly, c_vert, c_pixel, c_draw = cost_model.tuple_coefficients()
+    if alg.size and (alg.min() < 0 or alg.max() >= c_poly.size):
+        raise ValueError(f"algorithm index out of range 0..{c_poly.size - 1}")
+    out = np.empty(faces.shape)
+    kern.tuple_cost(np.ascontiguousarray(c_poly, np.float64), np.ascontiguousarray(c_vert, np.float64),
+                    np.ascontiguousarray(c_pixel, np.float64), float(c_draw), faces, vertices,
+                    np.ascontiguousarray(pixels, np.float64), alg, valid, out)
+    return out
 
 
 def _view_kernels():
@@ -173,7 +182,7 @@ def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=
     """
     r = len(algorithms)
     rep, valid, faces, vertices = option_arrays(lv, rows, r)
-    alg = np.asarray(algorithms, np.int64)[np.arange(faces.shape[1]) % r][None, :]
+    alg = np.asarray(algorithms, np.int64)[np.arange(faces.shape[1]) % r]
     if r > 1 or tuple(algorithms) != (0,):
         factors = with_algorithms(factors, algorithms)
     previous = None
@@ -217,8 +226,8 @@ def benefit_cost(lv, rows, scene, cams, cost_model, memory, factors, algorithms=
     # Cost is the maximum over the sampled cameras. The models' costs never fall with the pixels covered
     # (non-negative coefficients), so that is the cost at the most pixels any of them sees — to the bit,
     # as rounding is monotone too — and the model runs once.
-    pixels = (size[sampled].max(axis=0) * pixel_scale)[:, None] if sampled.any() else np.zeros((rows.size, 1))
-    cost = np.where(valid, _tuple_cost(cost_model, faces, vertices, pixels, alg), np.inf)
+    pixels = size[sampled].max(axis=0) * pixel_scale if sampled.any() else np.zeros(rows.size)
+    cost = _tuple_cost(cost_model, faces, vertices, pixels, alg, valid, kern)
     mean_size = size[sampled].sum(axis=0) / max(int(sampled.sum()), 1) if sampled.any() else np.zeros(rows.size)
     return mean_size, rep, valid, faces, benefit, cost, previous
 

@@ -354,6 +354,23 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                     out[i, k] += wj * b[k]
 
 
+@jit()
+def tuple_cost(c_poly, c_vert, c_pixel, c_draw, faces, vertices, pixels, alg, valid, out):
+    """out[i, k] = max(C1·faces + C2·vertices, C3·pixels) + C0 of option k's algorithm alg[k] for valid options,
+    inf elsewhere (``predict_terms`` with one draw each, in its order of operations). pixels: (v,)."""
+    v, kk = faces.shape
+    for i in range(v):
+        p = pixels[i]
+        for k in range(kk):
+            if valid[i, k]:
+                a = alg[k]
+                geometry = c_poly[a] * np.float64(faces[i, k]) + c_vert[a] * np.float64(vertices[i, k])
+                fill = c_pixel[a] * p
+                out[i, k] = (geometry if geometry >= fill else fill) + c_draw * 1.0
+            else:
+                out[i, k] = np.inf
+
+
 def compile_all() -> None:
     """Call every kernel once with the argument types the selection passes."""
     clips = np.tile(np.eye(4), (2, 1, 1))
@@ -378,6 +395,7 @@ def compile_all() -> None:
     pv, ex = np.zeros(1, np.bool_), np.ones(1)
     for f_dtype in (np.int64, np.int32):
         f = np.ones((2, 3), f_dtype)
+        tuple_cost(ex, ex, ex, 1.0, f, f, wh, np.zeros(3, np.int64), valid, out)
         for moving in (np.ones(2, bool), np.zeros(2, bool)):
             benefit_sum(size, offset, moved, moving, wh, f, f, valid, pv, ex, 1, ACCURACY_FS, empty1, empty2, empty1,
                         True, wh, 0.3, 0.5, 0.05, rows, 0.1, 0.1, empty2, out)

@@ -157,6 +157,27 @@ def test_benefit_sum_with_original_faces_equals_the_numpy_path(kern, seed, n, le
     assert one[0, 0] == pytest.approx(1e5 * 1000 / 40_000)
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 300), st.integers(1, 6), st.integers(1, 3), st.booleans())
+def test_tuple_cost_equals_predict_terms(kern, seed, n, levels, r, int32):
+    """The kernel prices each valid option as ``predict_terms`` does, to the bit, and invalid ones at inf."""
+    rng = np.random.default_rng(seed)
+    model = CostModel(algorithms=r, c_poly=rng.uniform(0, 1e-7, r) * (rng.random(r) < 0.7),
+                      c_vert=rng.uniform(0, 1e-6, r), c_pixel=rng.uniform(0, 1e-8, r) * (rng.random(r) < 0.7),
+                      c_draw=float(rng.uniform(0, 1e-5)))
+    k = levels * r
+    dtype = np.int32 if int32 else np.int64
+    faces = rng.integers(0, 200_000, (n, k)).astype(dtype)
+    vertices = (faces * rng.uniform(0.4, 1.2, (n, k))).astype(dtype)
+    valid = rng.random((n, k)) < 0.6
+    pixels = rng.uniform(0, 2e6, n) * (rng.random(n) < 0.9)
+    alg = np.arange(k) % r
+    want = np.where(valid, model.predict_terms(faces, vertices, pixels[:, None], alg[None, :], 1.0), np.inf)
+    got = options._tuple_cost(model, faces, vertices, pixels, alg, valid, kern)
+    assert np.array_equal(got, want)
+    assert np.array_equal(options._tuple_cost(model, faces, vertices, pixels, alg, valid, None), want)
+
+
 def test_the_view_matrix_is_protos_cached_and_read_only():
     rng = np.random.default_rng(5)
     for _ in range(200):
