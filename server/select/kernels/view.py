@@ -51,19 +51,6 @@ def _inside(lo, hi, i, planes, j):
 
 
 @jit(inline="always")
-def _box_inside(lx, ly, lz, hx, hy, hz, pl):
-    """``_inside`` for one box already in registers against one camera's (6, 4) planes."""
-    for p in range(6):
-        a, b, c, d = pl[p, 0], pl[p, 1], pl[p, 2], pl[p, 3]
-        px = hx if a >= 0 else lx
-        py = hy if b >= 0 else ly
-        pz = hz if c >= 0 else lz
-        if not (a * px + b * py + c * pz + d >= 0):
-            return False
-    return True
-
-
-@jit(inline="always")
 def _inside_any(lo, hi, i, planes, c):
     for j in range(c):
         if _inside(lo, hi, i, planes, j):
@@ -82,14 +69,14 @@ def _centre(cx, cy, cz, m, limit):
 
 @jit(inline="always")
 def _ndc(x, y, w, limit):
-    """``_centre`` from the point's clip coordinates."""
-    if w > 1e-9:
-        return min(max(x / w, -limit), limit), min(max(y / w, -limit), limit)
+    """``_centre`` from the point's clip coordinates. Every case is computed and one selected (no branches),
+    so that the loops calling it run several points at once; a case not selected may divide by zero."""
     reach = max(abs(x), abs(y))
-    if reach > 1e-12:
-        s = max(reach, 1e-300)
-        return x / s * limit, y / s * limit
-    return limit, limit
+    s = max(reach, 1e-300)
+    front, far = w > 1e-9, reach > 1e-12
+    nx = min(max(x / w, -limit), limit) if front else (x / s * limit if far else limit)
+    ny = min(max(y / w, -limit), limit) if front else (y / s * limit if far else limit)
+    return nx, ny
 
 
 @jit()
@@ -102,90 +89,109 @@ def project(lo, hi, rows, clips, planes, widths, heights, cull, before, has_befo
     before : (4, 4) the previous view's clip matrix, used iff ``has_before``
     size, offset, moved : (C, v) outputs — ``camera.screen_size`` (0 when culled), ``camera.centre_offset``,
         and the pixel distance ``screen_speed`` divides by dt (0 without ``before``)
-    Cameras outermost, so that each camera's matrix stays in registers over the boxes.
+    The rows' corners, extents and centres are gathered once into float64 rows (``g``); then each camera
+    streams over them in branch-free loops (``_sizes``, ``_offsets``), which the compiler runs several boxes
+    at a time.
     """
     nc, v = clips.shape[0], rows.shape[0]
     lim = SPEED_LIMIT_NDC
-    # Box centres, extents and (with ``before``) where the centres were on screen, in NDC.
-    cen = np.empty((v, 3))
-    ext = np.empty((v, 3))
-    was = np.zeros((v, 2))
+    g = np.empty((12, v))  # lo x, y, z; hi x, y, z; extent x, y, z; centre x, y, z
+    was = np.zeros((2, v))  # where the centres were on screen under ``before``, in NDC
     for q in range(v):
         i = rows[q]
         for a in range(3):
             l, h = np.float64(lo[i, a]), np.float64(hi[i, a])
-            cen[q, a] = (l + h) * 0.5
-            ext[q, a] = h - l
+            g[a, q], g[3 + a, q], g[6 + a, q], g[9 + a, q] = l, h, h - l, (l + h) * 0.5
         if has_before:
-            was[q, 0], was[q, 1] = _centre(cen[q, 0], cen[q, 1], cen[q, 2], before, lim)
+            was[0, q], was[1, q] = _centre(g[9, q], g[10, q], g[11, q], before, lim)
     for j in range(nc):
-        m = clips[j]
-        m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]
-        m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
-        m30, m31, m32, m33 = m[3, 0], m[3, 1], m[3, 2], m[3, 3]
-        wd, ht = widths[j], heights[j]
-        hw, hh = wd * 0.5, ht * 0.5
-        diag = math.sqrt(hw * hw + hh * hh)
-        full = float(wd * ht)
-        pl = planes[j].copy()
-        for q in range(v):
-            i = rows[q]
-            lx, ly, lz = np.float64(lo[i, 0]), np.float64(lo[i, 1]), np.float64(lo[i, 2])
-            # Size: the eight corners' clip coordinates, lo corner plus the edges along the set bits.
-            if cull and not _box_inside(lx, ly, lz, np.float64(hi[i, 0]), np.float64(hi[i, 1]),
-                                        np.float64(hi[i, 2]), pl):
-                size[j, q] = 0.0
-            else:
-                ex, ey, ez = ext[q, 0], ext[q, 1], ext[q, 2]
-                b0 = lx * m00 + ly * m01 + lz * m02 + m03
-                b1 = lx * m10 + ly * m11 + lz * m12 + m13
-                b3 = lx * m30 + ly * m31 + lz * m32 + m33
-                xa, ya, wa = ex * m00, ex * m10, ex * m30  # the edge along x, in clip x, y, w
-                xb, yb, wb = ey * m01, ey * m11, ey * m31
-                xc, yc, wc = ez * m02, ez * m12, ez * m32
-                x_lo = y_lo = 1.0
-                x_hi = y_hi = -1.0
-                behind = False
-                for k in range(8):
-                    sx, sy, sw = 0.0, 0.0, 0.0
-                    if k & 4:
-                        sx += xa
-                        sy += ya
-                        sw += wa
-                    if k & 2:
-                        sx += xb
-                        sy += yb
-                        sw += wb
-                    if k & 1:
-                        sx += xc
-                        sy += yc
-                        sw += wc
-                    w = b3 + sw
-                    if not (w > 1e-6):
-                        behind = True
-                        break
-                    iw = 1.0 / w
-                    x = min(max((b0 + sx) * iw, -1.0), 1.0)
-                    y = min(max((b1 + sy) * iw, -1.0), 1.0)
-                    x_lo, x_hi = min(x_lo, x), max(x_hi, x)
-                    y_lo, y_hi = min(y_lo, y), max(y_hi, y)
-                size[j, q] = full if behind else (x_hi - x_lo) * (y_hi - y_lo) * 0.25 * wd * ht
-            # Focus: the centre's distance from the screen centre over the half diagonal.
-            cx, cy, cz = cen[q, 0], cen[q, 1], cen[q, 2]
-            px = cx * m00 + cy * m01 + cz * m02 + m03  # (``_centre``'s sums: the centre's clip coordinates)
-            py = cx * m10 + cy * m11 + cz * m12 + m13
-            pw = cx * m30 + cy * m31 + cz * m32 + m33
-            nx, ny = _ndc(px, py, pw, 1.0)
-            dx, dy = (nx + 1.0) * 0.5 * wd - hw, (ny + 1.0) * 0.5 * ht - hh
-            offset[j, q] = min(max(math.sqrt(dx * dx + dy * dy) / diag, 0.0), 1.0)
-            # Motion: how far the centre (clamped at ±SPEED_LIMIT_NDC) moved on screen since ``before``.
-            if has_before:
-                ax, ay = _ndc(px, py, pw, lim)
-                dx = (ax + 1.0) * 0.5 * wd - (was[q, 0] + 1.0) * 0.5 * wd
-                dy = (ay + 1.0) * 0.5 * ht - (was[q, 1] + 1.0) * 0.5 * ht
-                moved[j, q] = math.sqrt(dx * dx + dy * dy)
-            else:
-                moved[j, q] = 0.0
+        _sizes(g, clips[j], planes[j], widths[j], heights[j], cull, size[j])
+        _offsets(g, clips[j], widths[j], heights[j], has_before, was, lim, offset[j], moved[j])
+
+
+@jit()
+def _sizes(g, m, pl, wd, ht, cull, out):
+    """``project``'s screen sizes for one camera: the eight corners' clip coordinates from the lo corner plus
+    the edges along the set bits; 0 outside the frustum when ``cull`` (``_inside``'s plane test)."""
+    v = g.shape[1]
+    m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]
+    m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
+    m30, m31, m32, m33 = m[3, 0], m[3, 1], m[3, 2], m[3, 3]
+    full = float(wd * ht)
+    lx, ly, lz, hx, hy, hz, ex, ey, ez = g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8]
+    # Each plane's corner farthest along its normal: hi where the normal's component is ≥ 0.
+    up = np.empty((6, 3), np.bool_)
+    for p in range(6):
+        for a in range(3):
+            up[p, a] = pl[p, a] >= 0
+    for q in range(v):
+        inside = True
+        for p in range(6):
+            px = hx[q] if up[p, 0] else lx[q]
+            py = hy[q] if up[p, 1] else ly[q]
+            pz = hz[q] if up[p, 2] else lz[q]
+            inside &= pl[p, 0] * px + pl[p, 1] * py + pl[p, 2] * pz + pl[p, 3] >= 0
+        b0 = lx[q] * m00 + ly[q] * m01 + lz[q] * m02 + m03
+        b1 = lx[q] * m10 + ly[q] * m11 + lz[q] * m12 + m13
+        b3 = lx[q] * m30 + ly[q] * m31 + lz[q] * m32 + m33
+        xa, ya, wa = ex[q] * m00, ex[q] * m10, ex[q] * m30  # the edge along x, in clip x, y, w
+        xb, yb, wb = ey[q] * m01, ey[q] * m11, ey[q] * m31
+        xc, yc, wc = ez[q] * m02, ez[q] * m12, ez[q] * m32
+        x_lo = y_lo = 1.0
+        x_hi = y_hi = -1.0
+        behind = False
+        for k in range(8):
+            sx, sy, sw = 0.0, 0.0, 0.0
+            if k & 4:
+                sx += xa
+                sy += ya
+                sw += wa
+            if k & 2:
+                sx += xb
+                sy += yb
+                sw += wb
+            if k & 1:
+                sx += xc
+                sy += yc
+                sw += wc
+            w = b3 + sw
+            behind |= not (w > 1e-6)
+            iw = 1.0 / w
+            x, y = (b0 + sx) * iw, (b1 + sy) * iw
+            x_lo, x_hi = min(x_lo, x), max(x_hi, x)
+            y_lo, y_hi = min(y_lo, y), max(y_hi, y)
+        # Clamped to the screen once: clamping each corner first gives the same bounds (both are monotone).
+        x_lo, x_hi, y_lo, y_hi = max(x_lo, -1.0), min(x_hi, 1.0), max(y_lo, -1.0), min(y_hi, 1.0)
+        sz = full if behind else (x_hi - x_lo) * (y_hi - y_lo) * 0.25 * wd * ht
+        out[q] = sz if inside or not cull else 0.0
+
+
+@jit()
+def _offsets(g, m, wd, ht, has_before, was, lim, offset, moved):
+    """``project``'s Focus offsets and Motion travel for one camera."""
+    v = g.shape[1]
+    m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]
+    m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
+    m30, m31, m32, m33 = m[3, 0], m[3, 1], m[3, 2], m[3, 3]
+    hw, hh = wd * 0.5, ht * 0.5
+    diag = math.sqrt(hw * hw + hh * hh)
+    cx, cy, cz = g[9], g[10], g[11]
+    for q in range(v):
+        # Focus: the centre's distance from the screen centre over the half diagonal.
+        px = cx[q] * m00 + cy[q] * m01 + cz[q] * m02 + m03  # (``_centre``'s sums: the centre's clip coordinates)
+        py = cx[q] * m10 + cy[q] * m11 + cz[q] * m12 + m13
+        pw = cx[q] * m30 + cy[q] * m31 + cz[q] * m32 + m33
+        nx, ny = _ndc(px, py, pw, 1.0)
+        dx, dy = (nx + 1.0) * 0.5 * wd - hw, (ny + 1.0) * 0.5 * ht - hh
+        offset[q] = min(max(math.sqrt(dx * dx + dy * dy) / diag, 0.0), 1.0)
+        # Motion: how far the centre (clamped at ±SPEED_LIMIT_NDC) moved on screen since ``before``.
+        if has_before:
+            ax, ay = _ndc(px, py, pw, lim)
+            dx = (ax + 1.0) * 0.5 * wd - (was[0, q] + 1.0) * 0.5 * wd
+            dy = (ay + 1.0) * 0.5 * ht - (was[1, q] + 1.0) * 0.5 * ht
+            moved[q] = math.sqrt(dx * dx + dy * dy)
+        else:
+            moved[q] = 0.0
 
 
 @jit()
