@@ -277,6 +277,22 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
     capped = np.empty(n_alg)
     keep = np.ones(kk)
     ks = np.empty(kk, np.int64)
+    # The factors of a row at a camera, the same for all its options (Focus, Motion, pixels per metre of the
+    # box for screen-space error): computed first, camera by camera in branch-free loops over the rows, which
+    # the compiler runs several rows at a time.
+    fo_all, mo_all, pm_all = np.ones((nc, v)), np.ones((nc, v)), np.zeros((nc, v))
+    for j in range(nc):
+        if use_focus:
+            for i in range(v):
+                fo_all[j, i] = max(1.0 - focus_strength * min(max(offset[j, i], 0.0), 1.0), MIN_FACTOR)
+        if moving[j]:
+            for i in range(v):
+                polygon_px = size[j, i] / max(np.float64(faces[i, 0]), 1.0)
+                edge = math.sqrt(max(polygon_px, 1.0))
+                mo_all[j, i] = 1.0 / (1.0 + motion_strength * max(speed[j, i], 0.0) * frame_time / edge)
+        if accuracy_mode == ACCURACY_SSE:
+            for i in range(v):
+                pm_all[j, i] = math.sqrt(2.0 * max(size[j, i], 0.0)) / max(extent[i], 1e-12)
     for i in range(v):
         # The options worth pricing: valid ones, and the previous one (hysteresis reads its benefit).
         prev = previous[i] if use_hysteresis else -1
@@ -317,14 +333,7 @@ def benefit_sum(size, offset, speed, moving, weight, faces, vertices, valid, per
                 for r in range(n_alg):
                     capped[r] = 1.0 - BASE_ERROR / _pow(cap, exponent[r])
             imp = importance[i] if use_importance else 1.0
-            fo = max(1.0 - focus_strength * min(max(offset[j, i], 0.0), 1.0), MIN_FACTOR) if use_focus else 1.0
-            mo = 1.0
-            if moving[j]:
-                polygon_px = s / max(np.float64(faces[i, 0]), 1.0)
-                edge = math.sqrt(max(polygon_px, 1.0))
-                mo = 1.0 / (1.0 + motion_strength * max(speed[j, i], 0.0) * frame_time / edge)
-            # Pixels per metre of the row's box at this camera: the same for every option of the row.
-            per_m = math.sqrt(2.0 * max(s, 0.0)) / max(extent[i], 1e-12) if accuracy_mode == ACCURACY_SSE else 0.0
+            fo, mo, per_m = fo_all[j, i], mo_all[j, i], pm_all[j, i]
             for t in range(nk):
                 k = ks[t]
                 # benefit_matrix's order: Size, Accuracy (the texture's share last), Importance, Focus, Motion.
