@@ -28,6 +28,7 @@ class ClockSync:
     def __init__(self, keep: int = 8) -> None:
         self._samples: deque[tuple[float, float]] = deque(maxlen=keep)  # (rtt, offset)
         self._guess: float | None = None
+        self._best: tuple[float, float] | None = None  # min(_samples), kept: a session reads it at every poll
 
     def add(self, sent: float, client_t: float, received: float) -> None:
         """One ping sent at server time ``sent``, answered at client time ``client_t``, back at ``received``."""
@@ -35,6 +36,7 @@ class ClockSync:
         if not (np.isfinite(rtt) and rtt >= 0 and np.isfinite(client_t)):
             return
         self._samples.append((rtt, client_t - 0.5 * (sent + received)))
+        self._best = min(self._samples)
 
     def observe(self, client_t: float, received: float) -> None:
         """A stamped client message: until a pong arrives, its stamp gives a first (late-biased) offset."""
@@ -48,12 +50,17 @@ class ClockSync:
     @property
     def offset(self) -> float:
         if self._samples:
-            return min(self._samples)[1]
+            return self._min()[1]
         return self._guess if self._guess is not None else 0.0
 
     @property
     def rtt(self) -> float:
-        return min(self._samples)[0] if self._samples else 0.0
+        return self._min()[0] if self._samples else 0.0
+
+    def _min(self) -> tuple[float, float]:
+        if self._best is None:
+            self._best = min(self._samples)
+        return self._best
 
     #: The fields a snapshot holds (a snapshot without them still loads).
     STATE = ("_samples", "_guess")
@@ -64,6 +71,7 @@ class ClockSync:
     def from_state(self, state) -> None:
         """Take in ``to_state``'s data; ValueError (clock unchanged) if it does not fit."""
         load_fields(self, state, self.STATE, "clock", optional=True)
+        self._best = None
 
     def client_time(self, server_now: float) -> float:
         return server_now + self.offset

@@ -309,24 +309,27 @@ class OnlineCostModel:
         return not checked[2]
 
     def _check(self, time, triangles, vertices, pixels, draws, splats):
-        """(time, z row, drew nothing) of a frame worth folding, or None; ValueError for arrays of the wrong size."""
+        """(time, z row, drew nothing) of a frame worth folding, or None; ValueError for arrays of the wrong size.
+        A frame report's dozen numbers are checked as Python floats: numpy's per-call cost is the most of it."""
         r = self.algorithms
         cols = []
         for name, a in (("triangles", triangles), ("vertices", vertices), ("pixels", pixels), ("draws", draws)):
-            a = np.asarray(a, np.float64).reshape(-1)
-            if a.size != r:
-                raise ValueError(f"{name} must have {r} entries (one per algorithm), got {a.size}")
+            a = [float(x) for x in a] if isinstance(a, (list, tuple)) else np.asarray(a, np.float64).ravel().tolist()
+            if len(a) != r:
+                raise ValueError(f"{name} must have {r} entries (one per algorithm), got {len(a)}")
             cols.append(a)
         try:
             time, splats = float(time), float(splats)
         except (TypeError, ValueError):
             return None
-        z = np.concatenate([[1.0], cols[0], cols[1], cols[2], [cols[3].sum(), splats]])
-        if not (math.isfinite(time) and time >= 1e-9 and np.isfinite(z).all() and (z >= 0).all()):
+        row = [1.0, *cols[0], *cols[1], *cols[2], sum(cols[3]), splats]
+        if not (math.isfinite(time) and time >= 1e-9):
             return None  # no frame takes less than a nanosecond
-        if ((z > 0) & (z < 1e-6)).any() or z.max() > 1e15:
-            return None  # counts, not numerical dust (which would put a coefficient's scale at infinity)
-        return time, z, bool(cols[1].sum() + splats <= 0)
+        for x in row:
+            # Counts, not numerical dust (which would put a coefficient's scale at infinity); NaN fails too.
+            if not (x == 0.0 or 1e-6 <= x <= 1e15):
+                return None
+        return time, np.array(row), sum(cols[1]) + splats <= 0
 
     def flush(self) -> None:
         """Fold the frames checked but not yet folded, in order: in one compiled pass (``cost_fold``) for a

@@ -210,10 +210,8 @@ class Session:
         else:
             r = len(ALGORITHMS)
 
-            def col(values: list[int]) -> np.ndarray:
-                out = np.zeros(r)
-                out[: len(values)] = values
-                return out
+            def col(values: list[int]) -> list[float]:  # one entry per algorithm the server knows
+                return [float(v) for v in values[:r]] + [0.0] * (r - len(values))
 
             columns = (col(terms.triangles), col(terms.vertices), col(terms.pixels), col(terms.draws))
             self.cost.observe_frame(report.time, report.vertices, columns, report.splats)

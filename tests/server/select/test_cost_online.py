@@ -294,6 +294,9 @@ def test_bad_frames_are_refused():
         (0.01, zero, np.array([np.nan, 0, 0]), zero, zero, 0),
         (0.01, zero, one, zero, zero, float("inf")),
         (0.01, zero, one, zero, zero, -5),
+        (0.01, zero, np.array([1e5, 1e-9, 0]), zero, zero, 0),  # numerical dust, not a count
+        (0.01, zero, np.array([1e16, 0, 0]), zero, zero, 0),  # absurd
+        (0.01, zero, [1e5, 0.0, 0.0], [1e5, float("inf"), 0.0], zero, 0),  # lists, as a session passes them
     ]
     for frame in bad:
         assert not model.observe(*frame)

@@ -20,6 +20,21 @@ def test_the_smallest_round_trip_gives_the_offset():
     assert clock.server_time(clock.client_time(3.0)) == pytest.approx(3.0)
 
 
+def test_the_offset_follows_the_samples_kept_and_restored():
+    """The best sample is kept between pings: it must follow samples that age out and a restored snapshot."""
+    clock = ClockSync(keep=2)
+    clock.add(sent=0.0, client_t=100.05, received=0.1)  # rtt 0.1, offset 100
+    clock.add(sent=1.0, client_t=201.1, received=1.2)  # rtt 0.2, offset 200
+    assert clock.offset == pytest.approx(100.0)
+    clock.add(sent=2.0, client_t=302.15, received=2.3)  # rtt 0.3: the 0.1 sample ages out
+    assert clock.rtt == pytest.approx(0.2) and clock.offset == pytest.approx(200.0)
+    other = ClockSync(keep=2)
+    other.add(sent=0.0, client_t=0.01, received=0.02)  # a better sample, then replaced by the snapshot
+    assert other.rtt == pytest.approx(0.02)
+    other.from_state(clock.to_state())
+    assert other.rtt == pytest.approx(0.2) and other.offset == pytest.approx(200.0)
+
+
 def test_bad_samples_are_ignored():
     clock = ClockSync()
     clock.add(sent=5.0, client_t=1.0, received=4.0)  # negative round trip
