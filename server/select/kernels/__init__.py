@@ -7,7 +7,7 @@ Modules, one concern each, all pure functions of arrays:
 - ``cut``: the greedy's radix cut of every increment at the budget, fill rounds, totals;
 - ``coherent``: the incremental solver's coherent step in one pass;
 - ``view``: culling, projection and the F&S benefit of a selection's cameras;
-- ``fold``: the online cost model's frame reports, folded in one pass;
+- ``fold``: the online cost model's frame reports, folded in one pass (``choose``: its choice of rung);
 - ``delta``: a delta's morph marking, and its level ranges expanded into the cache mirror's update;
 - ``motion``: the path predictor's robust line fit;
 - ``jit``: how they are all compiled.

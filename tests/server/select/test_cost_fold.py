@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from server.select import cost_online, rls
 from server.select.cost_online import MODELS, OnlineCostModel
+from server.select.kernels import choose as choose_kernel
 from server.select.kernels import fold as fold_kernel
 
 
@@ -114,7 +115,7 @@ def test_the_kernel_keeps_the_models_constants():
     assert fold_kernel.RESCALE_SHARE == rls.RESCALE_SHARE
     assert fold_kernel.SECONDARY == cost_online.SECONDARY and fold_kernel.YOUNG == cost_online.YOUNG
     assert fold_kernel.TIE == cost_online.TIE
-    assert fold_kernel.REGIME == (cost_online.REGIME_FRAMES, cost_online.REGIME_ERROR, cost_online.REGIME_RATIO)
+    assert choose_kernel.REGIME == (cost_online.REGIME_FRAMES, cost_online.REGIME_ERROR, cost_online.REGIME_RATIO)
 
 
 def test_fsum_is_correctly_rounded():
@@ -122,8 +123,8 @@ def test_fsum_is_correctly_rounded():
     for _ in range(200):
         a = rng.standard_normal(rng.integers(1, 70)) * 10.0 ** rng.integers(-8, 8, 1)
         a[rng.random(a.size) < 0.2] *= 1e12
-        assert fold_kernel._fsum(a, 0, a.size) == math.fsum(a)
-    assert fold_kernel._fsum(np.array([1e100, 1.0, -1e100, 1e-100]), 0, 4) == math.fsum([1e100, 1.0, -1e100, 1e-100])
+        assert choose_kernel._fsum(a, 0, a.size) == math.fsum(a)
+    assert choose_kernel._fsum(np.array([1e100, 1.0, -1e100, 1e-100]), 0, 4) == math.fsum([1e100, 1.0, -1e100, 1e-100])
 
 
 @settings(max_examples=200, deadline=None)
