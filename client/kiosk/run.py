@@ -113,11 +113,14 @@ class KioskRun:
     errors: list[str] = field(default_factory=list)
     status: int = 0
     close_reasons: list[str] = field(default_factory=list)
+    #: Client seconds from the start to the first drawn frame (window, dial, first delta), None before it.
+    first_frame: float | None = None
 
     def summary(self) -> dict:
         return {"frames": self.frames, "sessions": self.sessions, "reconnects": self.reconnects,
                 "states": [s for _, s in self.states], "screenshots": len(self.shots),
-                "errors": self.errors[-5:], "status": self.status, "close_reasons": self.close_reasons}
+                "errors": self.errors[-5:], "status": self.status, "close_reasons": self.close_reasons,
+                "first_frame_s": None if self.first_frame is None else round(self.first_frame, 3)}
 
 
 def _hello(config: KioskConfig, size: tuple[int, int], renderer: Renderer) -> Hello:
@@ -183,6 +186,8 @@ def run_kiosk(
 
         def frame_done(record: FrameRecord) -> None:
             result.frames += 1
+            if result.first_frame is None:
+                result.first_frame = record.t
             wall = time.time()
             hooks.frame(result.frames, wall)
             if wall - checked[0] >= 1.0:
@@ -251,7 +256,7 @@ class _Shots:
     def take(self, t: float, renderer: Renderer, director: Director) -> None:
         if self.every is None or self.folder is None or t < self.next:
             return
-        self.next = t + self.every
+        self.next = (math.floor(t / self.every) + 1) * self.every  # on a grid: slow frames do not stretch it
         path = Path(self.folder) / f"kiosk-{len(self.result.shots):05d}.png"
         if self.view is not None:  # what the window shows: the frame blitted to its back buffer
             self.view.blit(renderer)

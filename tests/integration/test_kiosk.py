@@ -10,6 +10,7 @@ Its config is the example ``walkstream kiosk --example`` prints, with the server
 from __future__ import annotations
 
 import json
+import math
 import os
 import select
 import shutil
@@ -201,7 +202,9 @@ def test_the_example_config_runs_fullscreen_in_a_window(small_display, server, t
     summary = json.loads(done.stdout.strip().splitlines()[-1])
     assert summary["frames"] > 20 and summary["sessions"] == 1 and summary["states"] == ["attract"]
     images = [_read(p) for p in sorted(shots.glob("kiosk-*.png"))]
-    assert len(images) >= 6 and all(im.shape == (SIZE[1], SIZE[0], 3) for im in images)  # the whole screen
+    # One shot a second on the client clock's grid from the first frame to the end (a slow start shifts it).
+    assert len(images) >= min(6, math.floor(9 - summary["first_frame_s"]) - 1) >= 4
+    assert all(im.shape == (SIZE[1], SIZE[0], 3) for im in images)  # the whole screen
     # The window showed the hall behind the first stop's caption (the dwell: 3 s from the first frame).
     caption = _glyphs(OverlayState(caption="The auditorium: 440 chairs facing the stage"),
                       below=Overlay(*SIZE, font=DEFAULT_FONT, caption_px=CAPTION_PX).layout.caption_bottom)
