@@ -96,6 +96,10 @@ class Schedule:
             raise ValueError(f"bad schedule window start={start} switch={switch}")
         rk, r0, r1, rt0, rt1 = (np.asarray(a) for a in ramps) if len(ramps) else (np.zeros(0, np.int64),) + (np.zeros(0),) * 4
         rk = rk.astype(np.int64)
+        if reset and now is not None and now < switch:
+            # At once, as the protocol says: the server's switch is its estimate of the client's clock, which can
+            # run ahead of this clock before the clock sync settles; waiting for it would draw nothing meanwhile.
+            switch = now
         after = LevelRamps.steady(key, level, switch)
         down = rt0 < switch
         up = ~down

@@ -157,6 +157,17 @@ def test_a_late_delta_ramps_from_what_is_drawn_instead_of_jumping():
     assert p.level(0, 1.0) == pytest.approx(0.0)
 
 
+def test_a_reset_delta_is_drawn_from_its_arrival_even_if_its_switch_is_ahead_of_the_clock():
+    # The server's switch is its estimate of the client's clock; before the clock sync settles it can run ahead.
+    s = Schedule()
+    s.apply(0.8, 0.8, np.array([0, K]), np.array([1.0, 2.0]), reset=True, now=0.5)
+    assert s.at(0.5).key.tolist() == [0, K] and s.at(0.5).level.tolist() == [1.0, 2.0]
+    assert s.late == 0
+    # A teleport's reset replaces what is drawn at once too, not at its switch.
+    s.apply(1.5, 1.5, np.array([2 * K]), np.array([3.0]), reset=True, now=1.2)
+    assert s.at(1.2).key.tolist() == [2 * K] and s.at(1.2).level.tolist() == [3.0]
+
+
 def test_marking_finds_up_and_down_transitions_across_hierarchies():
     # Two objects: 0 (3 levels, reps 0..2) is the HLOD parent of object 1 (2 levels, reps 3..4).
     parent = rep_parents(np.array([0, 1, 2, 0, 1]), np.array([0, 0, 0, 1, 1]), np.array([-1, 0]),
