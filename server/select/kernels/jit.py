@@ -10,6 +10,7 @@ pass, so that the first real call neither compiles nor loads anything.
 
 from __future__ import annotations
 
+import sys
 from types import ModuleType
 
 import numba
@@ -32,13 +33,16 @@ def jit(**options):
 
 def compile_module(module: ModuleType) -> None:
     """Run ``module.compile_all()``; if the cache numba chose cannot be read or written (a path under a
-    file, say), drop the cache of the module's kernels and compile them in memory instead."""
+    file, say), drop the cache of the package's kernels (the module's and those it calls from its siblings)
+    and compile them in memory instead."""
     try:
         module.compile_all()
     except OSError:
         from numba.core.caching import NullCache
 
-        for fn in list(vars(module).values()):
+        package = module.__name__.rpartition(".")[0] + "."
+        siblings = [m for name, m in list(sys.modules.items()) if name.startswith(package) and m is not None]
+        for fn in [f for m in siblings for f in list(vars(m).values())]:
             if isinstance(fn, numba.core.registry.CPUDispatcher):
                 fn._cache = NullCache()
         module.compile_all()
