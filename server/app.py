@@ -105,8 +105,9 @@ def create_app(
     def n_sessions() -> int:  # connections that said their hello: the ones holding a session slot
         return sum(1 for c in conns.values() if c.slot or c.session.state is not SessionState.AWAIT_HELLO)
     pool = ThreadPoolExecutor(max_workers=limits.threads, thread_name_prefix="walkstream-select")
-    # Selections, fairly: a session that spends more CPU than its neighbours waits behind them.
-    fair = FairPool(limits.threads, name="walkstream-fair")
+    # What each session spent on its selections: a session that spends more than its neighbours waits behind
+    # them in the ticks (which run on the event loop, so the ledger needs no threads of its own).
+    fair = FairPool(0, name="walkstream-fair")
 
     def poll_encoded(session: Session, now: float, culled) -> tuple[list[tuple[bytes, str | None]], bool, float,
                                                                      bytes | None]:

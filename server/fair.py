@@ -19,7 +19,11 @@ __all__ = ["FairPool", "settle"]
 
 
 class FairPool:
-    """``workers`` threads running submitted jobs least-spent key first (ties: first come, first served)."""
+    """``workers`` threads running submitted jobs least-spent key first (ties: first come, first served).
+
+    With no workers it is the ledger alone: what each key spent, charged by whoever ran the work (the
+    server's ticker, which orders its ticks by it).
+    """
 
     def __init__(self, workers: int, *, half_life: float = 5.0, clock: Callable[[], float] = time.monotonic,
                  name: str = "walkstream-fair") -> None:
@@ -62,8 +66,8 @@ class FairPool:
         loop = asyncio.get_running_loop()
         future = loop.create_future()
         with self._cond:
-            if self._closed:
-                raise RuntimeError("the pool is shut down")
+            if self._closed or not self._threads:
+                raise RuntimeError("the pool is shut down" if self._closed else "the pool has no workers")
             self._seq += 1
             self._queue.append((self._seq, key, fn, args, loop, future))
             self._cond.notify()

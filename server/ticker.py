@@ -1,26 +1,31 @@
 """The selections of a worker process, polled in batches: those that fall due together run as one tick.
 
 Each session's loop hands its due poll to the ticker and awaits its frames. A
-tick takes every poll queued by then (least-spent session first, as the fair
-pool orders single jobs), culls and projects their selections in one compiled
-pass over all their cameras (``session.batch.cull_due``), then polls, encodes and
-snapshots each session in turn and hands its frames back at once — the first
-session's delta does not wait for the last one's. Under light load a tick holds
-one poll; under heavy load the polls that queued while the previous tick ran.
+tick takes every poll queued by then (least-spent session first: a session that
+selects far more often or far more expensively than its neighbours waits behind
+them), culls and projects their selections in one compiled pass over all their
+cameras (``session.batch.cull_due``), then polls, encodes and snapshots each
+session in turn and hands its frames back at once — the first session's delta
+does not wait for the last one's. Under light load a tick holds one poll; under
+heavy load the polls that queued while the previous tick ran.
+
+Ticks run on the event loop's own thread, yielding to it between two polls so
+the frames handed back go out at once and the sockets are read. The work is
+Python and numba holding the GIL either way; a tick in a pool thread only added
+the hop to it and back and the GIL's hand-offs between two busy threads.
 
 CPU is charged to each session as it was spent (its own poll, encoding and
-snapshot, and its share of the shared pass), so the fair pool's order and
+snapshot, and its share of the shared pass), so the order of the next tick and
 ``/sessions``' figures stay per session.
 """
 
 from __future__ import annotations
 
 import asyncio
-import threading
 import time
 from typing import Callable
 
-from .fair import FairPool, settle
+from .fair import FairPool
 from .session import Session
 from .session.batch import cull_due
 
@@ -28,15 +33,14 @@ __all__ = ["Ticker"]
 
 
 class Ticker:
-    """fair : the pool the ticks run on (and whose spend orders them); work(session, now, culled) → result of one
-    session's poll (run in the tick's thread); limit : the most polls one tick takes; observe(n) : told the size
-    of every tick (the metrics)."""
+    """fair : the ledger whose spend orders each tick (and is charged by it); work(session, now, culled) →
+    result of one session's poll; limit : the most polls one tick takes; observe(n) : told the size of every
+    tick (the metrics)."""
 
     def __init__(self, fair: FairPool, work: Callable, limit: int = 64,
                  observe: Callable[[int], None] | None = None) -> None:
         self.fair, self.work, self.limit, self.observe = fair, work, int(limit), observe
-        self._lock = threading.Lock()
-        self._queue: list[tuple[Session, asyncio.AbstractEventLoop, asyncio.Future]] = []
+        self._queue: list[tuple[Session, asyncio.Future]] = []
         self._running = False
         self.ticks = 0
         self.polls = 0
@@ -44,28 +48,29 @@ class Ticker:
 
     async def poll(self, session: Session):
         """``work(session, now, culled)`` in the next tick (``now``: the tick's start, server clock)."""
-        loop = asyncio.get_running_loop()
-        future = loop.create_future()
-        with self._lock:
-            self._queue.append((session, loop, future))
-            start, self._running = not self._running, True
-        if start:
-            asyncio.ensure_future(self.fair.run("ticker", self._drain))
+        future = asyncio.get_running_loop().create_future()
+        self._queue.append((session, future))
+        if not self._running:
+            # The task starts after the callbacks ready now: polls that fell due in the same pass of the
+            # loop join its first tick.
+            self._running = True
+            asyncio.ensure_future(self._drain())
         return await future
 
-    def _drain(self) -> None:
-        """Ticks until nothing is queued (in a pool thread)."""
-        while True:
-            with self._lock:
-                if not self._queue:
-                    self._running = False
-                    return
+    async def _drain(self) -> None:
+        """Ticks until nothing is queued."""
+        try:
+            while self._queue:
                 queued = sorted(self._queue, key=lambda q: self.fair.spent(q[0].id))
-                batch, rest = queued[: self.limit], queued[self.limit:]
-                self._queue = rest
-            self._tick(batch)
+                batch, self._queue = queued[: self.limit], queued[self.limit:]
+                await self._tick(batch)
+        finally:
+            self._running = False
+            for _, future in self._queue:  # cancelled mid-tick (the server stops): nobody is left waiting
+                future.cancel()
+            self._queue = []
 
-    def _tick(self, batch) -> None:
+    async def _tick(self, batch) -> None:
         now = time.monotonic()
         self.ticks += 1
         self.polls += len(batch)
@@ -74,19 +79,20 @@ class Ticker:
             self.observe(len(batch))
         began = time.thread_time()
         try:
-            culled = cull_due([s for s, _, _ in batch], now)
+            culled = cull_due([s for s, _ in batch], now)
         except Exception:  # the shared pass failed: each session polls alone (and fails alone, if it must)
             culled = [None] * len(batch)
         share = (time.thread_time() - began) / len(batch)
-        for (session, loop, future), c in zip(batch, culled):
+        for (session, future), c in zip(batch, culled):
             began = time.thread_time()
             try:
                 result, error = self.work(session, now, c), None
-            except BaseException as exc:  # handed to the awaiting coroutine
+            except Exception as exc:  # handed to the awaiting coroutine
                 result, error = None, exc
             self.fair.charge(session.id, time.thread_time() - began + share)
-            try:
-                loop.call_soon_threadsafe(settle, future, result, error)
-            except RuntimeError:  # the loop is closed: nobody waits for this any more
-                pass
-
+            if not future.done():  # its session may have gone meanwhile
+                if error is not None:
+                    future.set_exception(error)
+                else:
+                    future.set_result(result)
+            await asyncio.sleep(0)  # its frames go out before the next session's poll
