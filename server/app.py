@@ -5,8 +5,9 @@ The handler owns the clock and the socket and nothing else. A reader task
 queues them, bounded in bytes; the session
 loop waits for a frame, the session's next deadline or the idle timeout,
 whichever comes first, and sends what the session returns. Selections (and the
-encoding of their deltas) run in the app's own thread pool, so one session's
-solve never stalls the event loop for the others. The loop awaits each send
+encoding of their deltas) run in ticks on the event loop (``server.ticker``),
+which yields between two sessions' polls so each delta goes out at once; hellos,
+restores and snapshots outside a tick run in the app's thread pool. The loop awaits each send
 before it polls again: a client that does not read makes only its own session
 wait (uvicorn's send waits while the transport's buffer is full).
 

@@ -171,8 +171,8 @@ def serve(
     idle_timeout: float = typer.Option(60.0, help="seconds without a client message before the session is closed"),
     workers: Optional[int] = typer.Option(None, help="worker processes behind the one port (default: the number of "
                                           "CPUs); they share session state (--redis, or a file of their own)"),
-    threads: Optional[int] = typer.Option(None, help="selection threads per worker process (default: the number "
-                                          "of CPUs)"),
+    threads: Optional[int] = typer.Option(None, help="threads per worker process for hellos, restores and "
+                                          "snapshots (default: the number of CPUs); selections run on the event loop"),
     state_ttl: float = typer.Option(300.0, help="seconds a disconnected session's state is kept for a resume"),
     replica: Optional[str] = typer.Option(None, help="this replica's name in /health (default: hostname:port)"),
     send_buffer: Optional[int] = typer.Option(None, help="kernel send buffer per connection in bytes (default: "

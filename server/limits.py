@@ -46,7 +46,8 @@ class ReplicaLimits:
     idle_timeout : seconds without any client message before Error("idle") and close 1000
     max_message : bytes of the largest frame uvicorn accepts at all (close 1009 above it)
     ping_interval, ping_timeout : uvicorn's websocket keepalive pings (seconds)
-    threads : threads of the selection pool (per worker process)
+    threads : threads of the pool that builds a hello's scene tables, restores and snapshots (per worker
+        process); selections run in ticks on the event loop
     state_ttl : seconds a saved session state is kept for a resume
     save_interval : the least seconds between two saves of one session's state (after deltas, acks and frames).
         A resume sends nothing the client holds whatever the save's age (its hello names what it holds); what
