@@ -42,6 +42,7 @@ class Ticker:
         self.fair, self.work, self.limit, self.observe = fair, work, int(limit), observe
         self._queue: list[tuple[Session, asyncio.Future]] = []
         self._running = False
+        self._task: asyncio.Task | None = None  # the draining task (the loop holds tasks only weakly)
         self.ticks = 0
         self.polls = 0
         self.largest = 0  # the most polls one tick held
@@ -54,7 +55,7 @@ class Ticker:
             # The task starts after the callbacks ready now: polls that fell due in the same pass of the
             # loop join its first tick.
             self._running = True
-            asyncio.ensure_future(self._drain())
+            self._task = asyncio.ensure_future(self._drain())
         return await future
 
     async def _drain(self) -> None:
