@@ -36,6 +36,8 @@ def loadtest(
     workers: Optional[list[int]] = typer.Option(None, "--workers", help="worker processes of the started server; "
                                                 "repeat (--workers 1 --workers 2) for a run of each and the "
                                                 "scaling ratio (default: 1)"),
+    repeats: int = typer.Option(1, min=1, help="rounds of the --workers runs, interleaved (1 2, 2 1, …); each "
+                                "goal is judged on the median round and printed with the spread"),
     metrics: Optional[list[str]] = typer.Option(None, "--metrics", help="with --url: a server (http://host:port) "
                                                 "whose /metrics and /sessions count, repeated for each replica "
                                                 "behind the load balancer (default: the --url host)"),
@@ -65,7 +67,7 @@ def loadtest(
         raise typer.BadParameter("--metrics names the servers behind a --url", param_hint="--metrics")
     try:
         result, runs = run_goals(
-            workers or [1], coherent=coherent,
+            workers or [1], repeats=repeats, coherent=coherent,
             url=url, stores=stores or None, scene=scene, clients=clients, duration=duration, tau=tau, rate=rate,
             target_ms=target_ms, algorithms=algs, ramp=ramp, seed=seed, reference=reference,
             admin_headers={"Authorization": f"Bearer {admin_token}"} if admin_token else None,

@@ -9,6 +9,12 @@ worker's (the goal counts when both runs held the lines): on a machine whose
 cores the load generator shares with the server the runs cannot hold the full
 load of each, so the server's own CPU is what is compared — and the notes say
 when a run missed the lines or the generator was the limit.
+
+With ``repeats`` the worker counts run in rounds, interleaved (1 2, 2 1, 1 2, …):
+this machine's speed wanders by ±20 % from one minute to the next, so one pair
+of runs can put the scaling ratio anywhere from 1.4 to 2.0. Each goal is then
+judged on its median round and printed with the rounds' spread; the scaling
+ratio of a round pairs the two runs of that round.
 The coherent step of the incremental solver at 100k objects is timed too, in CPU
 seconds (``bench.select``).
 """
@@ -16,12 +22,12 @@ seconds (``bench.select``).
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 from bench.loadtest.run import run_loadtest
 from bench.loadtest.summary import GOAL_SESSIONS_PER_CORE, LoadSummary, fmt, format_summary
 
-__all__ = ["GOAL_SCALING", "GOAL_COHERENT_MS", "run_goals", "format_goals"]
+__all__ = ["GOAL_SCALING", "GOAL_COHERENT_MS", "judge", "run_goals", "format_goals"]
 
 #: Sessions held with two workers against one (both at the lines), and the coherent step at 100k objects (ms).
 GOAL_SCALING = 1.8
@@ -37,48 +43,99 @@ def capacity(run: LoadSummary) -> float | None:
     return run.sessions_per_core * (run.workers or 1)
 
 
-def run_goals(workers: Sequence[int], *, coherent: bool = True, log: Callable[[str], None] | None = None,
-              **kw) -> tuple[dict, list[LoadSummary]]:
-    """``run_loadtest(workers=w, **kw)`` for each ``w``, then the goals: a JSON-ready dict whose top level is the
-    first run's summary (as a single run prints it) with ``runs``, ``goals`` and ``goal_met`` added, and the runs."""
-    say = log or (lambda s: None)
-    runs = []
-    for w in workers:
-        say(f"— {w} worker process{'es' if w > 1 else ''} —")
-        runs.append(run_loadtest(workers=int(w), log=log, **kw))
+def _median_index(values: Sequence[float | None]) -> int | None:
+    """Index of the median of the values that are there (the lower one of an even count: the cautious side)."""
+    known = sorted((v, i) for i, v in enumerate(values) if v is not None)
+    return known[(len(known) - 1) // 2][1] if known else None
+
+
+def _spread(values: Sequence[float | None]) -> list[float] | None:
+    known = [v for v in values if v is not None]
+    return [min(known), max(known)] if known else None
+
+
+def judge(by_round: Sequence[Mapping[int, LoadSummary]], counts: Sequence[int]) -> tuple[list[dict], list[str]]:
+    """The goals of rounds of runs (``by_round[k][w]``: round k's run of w workers), each on its median round,
+    and the notes on what limited them."""
     goals = []
-    for r in runs:
-        goals.append({"goal": "sessions_per_core", "workers": r.workers, "value": r.sessions_per_core,
-                      "bound": GOAL_SESSIONS_PER_CORE, "kind": "min", "lines_met": r.lines_met,
-                      "delivered": r.selections_due_share, "p99_ms": r.selection_p99_ms,
-                      "server_cpu_per_session_s": r.server_cpu_per_session_s, "sessions": r.connected_at_end,
-                      "generator_cores": r.generator_cores, "goal_met": r.goal_met})
+    for w in counts:
+        mine = [r[w] for r in by_round]
+        values = [r.sessions_per_core for r in mine]
+        m = mine[_median_index(values) or 0]
+        goals.append({"goal": "sessions_per_core", "workers": m.workers, "value": m.sessions_per_core,
+                      "bound": GOAL_SESSIONS_PER_CORE, "kind": "min", "lines_met": m.lines_met,
+                      "delivered": m.selections_due_share, "p99_ms": m.selection_p99_ms,
+                      "server_cpu_per_session_s": m.server_cpu_per_session_s, "sessions": m.connected_at_end,
+                      "generator_cores": m.generator_cores, "goal_met": m.goal_met, "rounds": len(mine),
+                      "values": values, "spread": _spread(values), "rounds_met": sum(r.goal_met for r in mine)})
     notes = []
-    base = next((r for r in runs if (r.workers or 1) == 1), None)
-    top = max(runs, key=lambda r: r.workers or 1)
-    if base is not None and top is not base:
-        c1, cn = capacity(base), capacity(top)
-        ratio = cn / c1 if c1 and cn else None
-        both = base.lines_met and top.lines_met
-        goals.append({"goal": "scaling", "workers": top.workers, "value": ratio, "bound": GOAL_SCALING, "kind": "min",
-                      "capacity_1": c1, f"capacity_{top.workers}": cn, "lines_met": both,
-                      "goal_met": bool(both and ratio is not None and ratio >= GOAL_SCALING)})
-        if not both:
+    base_w = next((w for w in counts if w == 1), None)
+    top_w = max(counts)
+    if base_w is not None and top_w != base_w:
+        ratios, held, c1s, cns = [], [], [], []
+        for mine in by_round:  # paired within a round: the two runs saw the same stretch of the machine
+            base, top = mine[base_w], mine[top_w]
+            c1, cn = capacity(base), capacity(top)
+            ratios.append(cn / c1 if c1 and cn else None)
+            held.append(bool(base.lines_met and top.lines_met))
+            c1s.append(c1)
+            cns.append(cn)
+        i = _median_index(ratios)
+        ratio = None if i is None else ratios[i]
+        both = bool(i is not None and held[i])
+        goals.append({"goal": "scaling", "workers": top_w, "value": ratio, "bound": GOAL_SCALING, "kind": "min",
+                      "capacity_1": None if i is None else c1s[i],
+                      f"capacity_{top_w}": None if i is None else cns[i], "lines_met": both,
+                      "goal_met": bool(both and ratio is not None and ratio >= GOAL_SCALING), "rounds": len(ratios),
+                      "values": ratios, "spread": _spread(ratios),
+                      "rounds_met": sum(bool(h and r is not None and r >= GOAL_SCALING) for r, h in zip(ratios, held))})
+        if not all(held):
             notes.append("the scaling ratio compares the capacity each run's CPU per session-second implies; a run "
                          "that did not hold the lines spent less than its load would cost (selections skipped), so "
                          "its capacity is overstated — run at a load one worker holds for the goal to count")
-    for r in runs:
+    for r in (r for mine in by_round for r in mine.values()):
         if (r.generator_cores or 0) > GENERATOR_LIMIT or r.frames_skipped:
             notes.append(f"with {r.workers} worker(s) the load generator used {fmt(r.generator_cores, '.2f')} of a "
                          "core beside the server: the load it produced is what was delivered, and the sessions per "
                          "core are implied by the server's CPU per session-second at that load")
+    return goals, list(dict.fromkeys(notes))
+
+
+def run_goals(workers: Sequence[int], *, repeats: int = 1, coherent: bool = True,
+              log: Callable[[str], None] | None = None, **kw) -> tuple[dict, list[LoadSummary]]:
+    """``run_loadtest(workers=w, **kw)`` for each ``w``, ``repeats`` rounds interleaved (the order of the worker
+    counts reversed every other round, so a machine that drifts slower or faster weighs on each alike), then
+    the goals, each on the median round with the spread of the rounds: a JSON-ready dict whose top level is the
+    first run's summary (as a single run prints it) with ``runs``, ``goals`` and ``goal_met`` added, and the
+    runs in the order they ran."""
+    if repeats < 1:
+        raise ValueError("--repeats must be at least 1")
+    counts = [int(w) for w in workers]
+    if len(set(counts)) != len(counts):
+        raise ValueError(f"--workers: each count once (got {', '.join(map(str, counts))})")
+    say = log or (lambda s: None)
+    runs: list[LoadSummary] = []
+    rounds: list[int] = []
+    by_round: list[dict[int, LoadSummary]] = []
+    for k in range(repeats):
+        mine: dict[int, LoadSummary] = {}
+        for w in counts if k % 2 == 0 else counts[::-1]:
+            head = f"round {k + 1} of {repeats}: " if repeats > 1 else ""
+            say(f"— {head}{w} worker process{'es' if w > 1 else ''} —")
+            mine[w] = run_loadtest(workers=w, log=log, **kw)
+            runs.append(mine[w])
+            rounds.append(k)
+        by_round.append(mine)
+    goals, notes = judge(by_round, counts)
     if coherent:
         from bench.select import coherent_step_ms
 
         value = coherent_step_ms(100_000)
         goals.append({"goal": "coherent_step_ms", "objects": 100_000, "value": value, "bound": GOAL_COHERENT_MS,
                       "kind": "max", "goal_met": bool(value <= GOAL_COHERENT_MS)})
-    out = {**runs[0].as_dict(), "runs": [asdict(r) for r in runs], "goals": goals, "notes_goals": notes}
+    out = {**runs[0].as_dict(), "repeats": repeats,
+           "runs": [{**asdict(r), "round": k + 1} for r, k in zip(runs, rounds)],
+           "goals": goals, "notes_goals": notes}
     out["goal_met"] = all(g["goal_met"] for g in goals)
     return out, runs
 
@@ -95,6 +152,10 @@ def format_goals(result: dict, runs: list[LoadSummary]) -> list[str]:
         extra = "" if g["goal"] != "sessions_per_core" else (
             f" — delivered {fmt(None if g['delivered'] is None else 100 * g['delivered'], '.0f')} %, "
             f"p99 {fmt(g['p99_ms'])} ms, lines {'held' if g['lines_met'] else 'NOT held'}")
+        if (g.get("rounds") or 1) > 1:
+            low, high = g["spread"] or (None, None)
+            extra += (f" (the median of {g['rounds']} rounds, {fmt(low, '.2f')}–{fmt(high, '.2f')}; "
+                      f"met in {g['rounds_met']} of {g['rounds']})")
         lines.append(f"goal {what}: {value} {op} {g['bound']:g}: {'met' if g['goal_met'] else 'NOT met'}{extra}")
     lines += [f"note: {n}" for n in result["notes_goals"]]
     return lines
