@@ -94,7 +94,7 @@ def judge(by_round: Sequence[Mapping[int, LoadSummary]], counts: Sequence[int]) 
                          "that did not hold the lines spent less than its load would cost (selections skipped), so "
                          "its capacity is overstated — run at a load one worker holds for the goal to count")
     for r in (r for mine in by_round for r in mine.values()):
-        if (r.generator_cores or 0) > GENERATOR_LIMIT or r.frames_skipped:
+        if (r.generator_cores or 0) > GENERATOR_LIMIT or r.generator_fell_behind:
             notes.append(f"with {r.workers} worker(s) the load generator used {fmt(r.generator_cores, '.2f')} of a "
                          "core beside the server: the load it produced is what was delivered, and the sessions per "
                          "core are implied by the server's CPU per session-second at that load")

@@ -16,7 +16,7 @@ import numpy as np
 
 from bench.loadtest.client import ClientConfig, RendererModel, SimulatedClient
 from bench.loadtest.metrics import Scrape, hist_delta, merge, parse_metrics, quantiles_ms, tree_cpu
-from bench.loadtest.summary import GOAL_SESSIONS_PER_CORE, LoadSummary, PhaseResult, at_the_lines, fmt
+from bench.loadtest.summary import GOAL_SESSIONS_PER_CORE, SKIPPED_LIMIT, LoadSummary, PhaseResult, at_the_lines, fmt
 from proto.messages import ALGORITHMS
 
 __all__ = ["LoadtestError", "run_loadtest"]
@@ -204,8 +204,8 @@ async def _phase(cfg: ClientConfig, name: str, n: int, duration: float, ramp: fl
     return _result(cfg, clients, totals, first, window_start, end, end_totals, mirror, w0, w1)
 
 
-def _result(cfg: ClientConfig, clients: list[SimulatedClient], totals: _Totals, first: Scrape, window_start, end: Scrape,
-            end_totals: dict, mirror: dict | None, w0: float, w1: float) -> PhaseResult:
+def _result(cfg: ClientConfig, clients: list[SimulatedClient], totals: _Totals, first: Scrape, window_start,
+            end: Scrape, end_totals: dict, mirror: dict | None, w0: float, w1: float) -> PhaseResult:
     a, a_totals = window_start
     wall = max(end.at - a.at, 1e-6)
     n = len(clients)
@@ -236,7 +236,8 @@ def _result(cfg: ClientConfig, clients: list[SimulatedClient], totals: _Totals, 
                     "it is saturated or starved by other processes, so sessions per core overstates its capacity")
     cpu_self = (end_totals["cpu"] - a_totals["cpu"]) / wall
     skipped = sum(c.skipped for c in clients)
-    if skipped > 0.01 * max(1, sum(c.frames for c in clients)):
+    fell_behind = skipped > SKIPPED_LIMIT * max(1, sum(c.frames for c in clients))
+    if fell_behind:
         totals.note(f"the load generator skipped {skipped} frames for falling behind while using {cpu_self:.0%} of "
                     "a core: " + ("it is the bottleneck" if cpu_self > 0.7 else "the machine is overloaded"))
     bout = None
@@ -278,6 +279,7 @@ def _result(cfg: ClientConfig, clients: list[SimulatedClient], totals: _Totals, 
         acks=sum(c.acks for c in clients),
         pongs=sum(c.pongs for c in clients),
         frames_skipped=skipped,
+        generator_fell_behind=fell_behind,
         generator_cpu_per_session_s=(end_totals["cpu"] - a_totals["cpu"]) / (sessions * wall) if sessions else None,
         generator_cores=cpu_self,
         polls_per_tick=tick_polls / ticks if ticks > 0 else None,

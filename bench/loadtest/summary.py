@@ -7,8 +7,8 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field
 
-__all__ = ["GOAL_SESSIONS_PER_CORE", "GOAL_P99_MS", "GOAL_DELIVERED", "PhaseResult", "LoadSummary", "fmt",
-           "format_summary", "at_the_lines"]
+__all__ = ["GOAL_SESSIONS_PER_CORE", "GOAL_P99_MS", "GOAL_DELIVERED", "SKIPPED_LIMIT", "PhaseResult", "LoadSummary",
+           "fmt", "format_summary", "at_the_lines"]
 
 
 #: The benchmark's goal: sessions per server core, held at these lines — the share of the selections due that
@@ -16,6 +16,8 @@ __all__ = ["GOAL_SESSIONS_PER_CORE", "GOAL_P99_MS", "GOAL_DELIVERED", "PhaseResu
 GOAL_SESSIONS_PER_CORE = 100.0
 GOAL_P99_MS = 100.0
 GOAL_DELIVERED = 0.95
+#: A generator that skipped more than this share of the frames it was to send limited the load it produced.
+SKIPPED_LIMIT = 0.01
 
 
 @dataclass
@@ -61,6 +63,7 @@ class PhaseResult:
     server_cores: float | None = None  # the server's CPU seconds per second, all its processes
     polls_per_tick: float | None = None  # due polls the server ran together, on average (``server.ticker``)
     frames_skipped: int = 0
+    generator_fell_behind: bool = False  # it skipped more than ``SKIPPED_LIMIT`` of the frames it was to send
     mirror_checks: int | None = None
     mirror_mismatch: int | None = None
     resyncs: int | None = None

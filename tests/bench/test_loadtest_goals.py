@@ -94,3 +94,11 @@ def test_cli_refuses_zero_rounds_in_one_line(demo_store):
     out = subprocess.run([sys.executable, "-m", "walkstream", "loadtest", "--store", str(demo_store), "--clients", "2",
                           "--duration", "2", "--repeats", "0"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "--repeats" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_a_few_skipped_frames_do_not_say_the_generator_was_the_limit():
+    fine, behind = _run(1, 120.0), _run(1, 120.0)
+    fine.frames_skipped = 2  # of thousands: the generator kept up
+    behind.frames_skipped, behind.generator_fell_behind = 400, True
+    assert judge([{1: fine}], [1])[1] == []
+    assert any("load generator" in n for n in judge([{1: behind}], [1])[1])
