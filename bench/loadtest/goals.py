@@ -21,10 +21,12 @@ seconds (``bench.select``).
 
 from __future__ import annotations
 
+import statistics
 from dataclasses import asdict
 from typing import Callable, Mapping, Sequence
 
 from bench.loadtest.run import run_loadtest
+from bench.machine import calibration_workload
 from bench.loadtest.summary import GOAL_SESSIONS_PER_CORE, LoadSummary, fmt, format_summary
 
 __all__ = ["GOAL_SCALING", "GOAL_COHERENT_MS", "judge", "run_goals", "format_goals"]
@@ -66,7 +68,8 @@ def judge(by_round: Sequence[Mapping[int, LoadSummary]], counts: Sequence[int]) 
                       "bound": GOAL_SESSIONS_PER_CORE, "kind": "min", "lines_met": m.lines_met,
                       "delivered": m.selections_due_share, "p99_ms": m.selection_p99_ms,
                       "server_cpu_per_session_s": m.server_cpu_per_session_s, "sessions": m.connected_at_end,
-                      "generator_cores": m.generator_cores, "goal_met": m.goal_met, "rounds": len(mine),
+                      "generator_cores": m.generator_cores, "calibration_ms": m.calibration_ms,
+                      "goal_met": m.goal_met, "rounds": len(mine),
                       "values": values, "spread": _spread(values), "rounds_met": sum(r.goal_met for r in mine)})
     notes = []
     base_w = next((w for w in counts if w == 1), None)
@@ -122,7 +125,9 @@ def run_goals(workers: Sequence[int], *, repeats: int = 1, coherent: bool = True
         for w in counts if k % 2 == 0 else counts[::-1]:
             head = f"round {k + 1} of {repeats}: " if repeats > 1 else ""
             say(f"— {head}{w} worker process{'es' if w > 1 else ''} —")
+            speed = statistics.median(calibration_workload() for _ in range(5))
             mine[w] = run_loadtest(workers=w, log=log, **kw)
+            mine[w].calibration_ms = 1e3 * speed
             runs.append(mine[w])
             rounds.append(k)
         by_round.append(mine)

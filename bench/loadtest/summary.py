@@ -85,6 +85,9 @@ class LoadSummary(PhaseResult):
     cpu_per_session_ratio: float | None = None
     p99_ratio: float | None = None
     workers: int | None = None  # processes of the server the test started (None: not ours)
+    # The calibration workload (``bench.machine``) just before the run, median of five: the machine's speed then,
+    # so runs at different times can be compared.
+    calibration_ms: float | None = None
     goal_sessions_per_core: float = GOAL_SESSIONS_PER_CORE
     goal_p99_ms: float = GOAL_P99_MS
     goal_delivered: float = GOAL_DELIVERED
@@ -124,7 +127,8 @@ def format_summary(s: LoadSummary) -> list[str]:
         f"  received {s.bytes_per_s / 1e6:.3f} MB/s; server CPU {fmt(s.server_cpu_per_session_s, '.4f')} s per "
         f"session-second ({fmt(s.server_cores, '.2f')} cores, "
         f"{'all ' + str(s.workers) + ' worker processes' if s.workers else 'as the server reports it'}) → "
-        f"{fmt(s.sessions_per_core)} sessions per server core",
+        f"{fmt(s.sessions_per_core)} sessions per server core"
+        + (f" (calibration workload {s.calibration_ms:.1f} ms just before)" if s.calibration_ms is not None else ""),
         f"  load generator CPU {fmt(s.generator_cpu_per_session_s, '.4f')} s per session-second "
         f"({fmt(s.generator_cores, '.2f')} cores), {s.frames_skipped} frames skipped for falling behind",
         f"  modelled frame time p95 {fmt(s.frame_p95_ms)} ms against {s.frame_target_ms:g} ms "

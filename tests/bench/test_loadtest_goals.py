@@ -83,6 +83,7 @@ def test_cli_rounds_interleave_and_report_the_spread(demo_store):
     summary = json.loads(out.stdout.strip().splitlines()[-1])
     assert summary["repeats"] == 2
     assert [(r["round"], r["workers"]) for r in summary["runs"]] == [(1, 1), (1, 2), (2, 2), (2, 1)]
+    assert all(r["calibration_ms"] > 0 for r in summary["runs"])  # the machine's speed beside each run
     goals = {(g["goal"], g.get("workers")): g for g in summary["goals"]}
     for g in goals.values():
         assert g["rounds"] == 2 and len(g["values"]) == 2
