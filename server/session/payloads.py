@@ -21,6 +21,7 @@ import weakref
 from collections import OrderedDict
 
 import msgpack
+import numpy as np
 
 from proto.messages import ModelAdd, RepresentationAdd
 
@@ -69,6 +70,9 @@ class Payloads:
         self._level = index.rep_level
         self._trees = index.object_kind[index.rep_object] == TREES
         self._has_morph = index.rep_morph
+        # Each representation's morph-map bytes once its add with the map was built (0 before, and for those
+        # without one): a delta's byte count is then a sum over an array, not over its adds.
+        self.morph_bytes = np.zeros(len(index.rep_object), np.int64)
         self._adds: OrderedDict[tuple[int, bool], RepresentationAdd] = OrderedDict()
         self._models: list[ModelAdd] | None = None
         self._lock = threading.Lock()
@@ -124,6 +128,8 @@ class Payloads:
                         continue
                     self._adds[key] = add
                     self.bytes += _size(add)
+                    if add.morph:
+                        self.morph_bytes[r] = len(add.morph)
                     self._enter(add, wire[r])
                 self._evict()
             for i in missing:

@@ -275,8 +275,10 @@ class Pipeline:
         if new.size and self.table.rep_trees[new].any() and not mirror.models_sent:
             mirror.models_sent = True  # the groups' instances name these: sent once, kept
             models = payloads.models()
-        geometry = sum(len(a.geometry) for a in add)
-        maps = sum(len(a.morph) for a in add if a.morph)
+        # The stored sizes (the store records each payload's length), summed over arrays: a delta may carry
+        # hundreds of adds.
+        geometry = int(self.table.rep_bytes[new].sum()) if new.size else 0
+        maps = int(payloads.morph_bytes[new].sum()) if new.size and self.maps else 0
         nbytes = geometry + maps + sum(len(m.points) for m in models)
         if geometry:  # what morph maps add to the geometry they come with, as this session sees it
             self.morph_share += 0.3 * (maps / geometry - self.morph_share)

@@ -69,3 +69,21 @@ def test_the_cache_keeps_to_its_bound_and_forgets_what_it_evicts(city):
     assert last is first[-1] and packed(last) is not None
     cache.close()
     assert packed(last) is None and cache.bytes == 0
+
+
+def test_a_deltas_byte_count_from_the_stored_sizes_is_its_adds_lengths(city):
+    """The pipeline counts a delta's bytes from the store's recorded sizes and the cache's morph-map sizes
+    (arrays, not a pass over the adds): they must be the adds' own lengths, trees and meshes alike."""
+    from server.session.table import SceneTable
+
+    cache = Payloads(city)
+    table = SceneTable.of(city.index)
+    trees = np.flatnonzero(city.index.object_kind[city.index.rep_object] == 3)
+    reps = np.unique(np.r_[np.arange(0, city.index.rep_object.size, 7), trees[:5]])
+    assert city.index.rep_morph[reps].any()
+    for morph in (True, False):
+        adds = cache.adds(reps.tolist(), morph)
+        assert int(table.rep_bytes[reps].sum()) == sum(len(a.geometry) for a in adds)
+        maps = sum(len(a.morph) for a in adds if a.morph)
+        assert (int(cache.morph_bytes[reps].sum()) if morph else 0) == maps
+        assert maps > 0 or not morph
