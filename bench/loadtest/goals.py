@@ -11,9 +11,9 @@ load of each, so the server's own CPU is what is compared — and the notes say
 when a run missed the lines or the generator was the limit.
 
 With ``repeats`` the worker counts run in rounds, interleaved (1 2, 2 1, 1 2, …):
-this machine's speed wanders by ±20 % from one minute to the next, so one pair
-of runs can put the scaling ratio anywhere from 1.4 to 2.0. Each goal is then
-judged on its median round and printed with the rounds' spread; the scaling
+a shared machine's speed wanders from one minute to the next, so a verdict from
+one pair of runs says more about the minute than about the server. Each goal is
+then judged on its median round and printed with the rounds' spread; the scaling
 ratio of a round pairs the two runs of that round.
 The coherent step of the incremental solver at 100k objects is timed too, in CPU
 seconds (``bench.select``).
