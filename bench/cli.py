@@ -318,8 +318,8 @@ def bench_soak(
 
 
 def parse_hold(text: str):
-    """``--hold`` as a ``client.governor.Hold``; a bad line is a one-line usage error naming it."""
-    from client.governor import Hold
+    """``--hold`` as a ``client.hold.Hold``; a bad line is a one-line usage error naming it."""
+    from client.hold import Hold
 
     try:
         return Hold.parse(text)

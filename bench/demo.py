@@ -210,9 +210,9 @@ def run_demo(
     hold=None,
 ):
     """Serve ``store``, run the client over the tour, return (run, summary, chart path); ``hold`` is the
-    governor's line (``client.governor.Hold``; None: the client's default)."""
+    governor's line (``client.hold.Hold``; None: the client's default)."""
     from client.app import run_client
-    from client.governor import STRICT
+    from client.hold import STRICT
 
     with ServerProcess([store]) as server:
         run = run_client(

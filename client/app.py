@@ -34,7 +34,8 @@ from proto.tour import Tour
 from .connection import Arrived, Item, Link, Redialled, as_urls, open_patiently, with_client
 from .frame_loop import FrameLoop, quiet_collector, run_frames
 from .calibrate import renderer_c_vertex
-from .governor import STRICT, Governor, Hold
+from .governor import Governor
+from .hold import STRICT, Hold
 from .navigation import Navigator
 from .records import ClientRun, FrameRecord
 from .renderer import COLOURS, Renderer
@@ -125,7 +126,7 @@ def run_client(
     tour the server's welcome carries: evaluations drive the camera along paths of their own.
     ``governor`` (on by default) asks for the delta's ladder and corrects the selection every
     frame to hold ``target_frame_time`` (``client.governor``); off, the server's plan is drawn as it is.
-    ``hold`` is the line it holds (``client.governor.Hold``; by default at most 1 % of frames over 1.1 × target).
+    ``hold`` is the line it holds (``client.hold.Hold``; by default at most 1 % of frames over 1.1 × target).
     ``calibrate`` measures the renderer's seconds per vertex before the hello (``client.calibrate``), the
     server's first guess for its cost model. ``plan`` (with a ``tour``) tells the server the path in the
     hello (``Hello.plan``): it then predicts the camera along the tour instead of extrapolating.
@@ -230,7 +231,7 @@ def run_client(
         run.rejected = list(loop.cache.rejected)
         run.unmorphed = renderer.unmorphed
         if loop.governor is not None:
-            run.governor = loop.governor.predictor.report()
+            run.governor = loop.governor.report()
         return run
     finally:
         if recorder is not None and recorder.stops:

@@ -34,52 +34,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .frame_predictor import FramePredictor
+from .hold import STRICT, Hold, Ledger
 
-__all__ = ["Governor", "GovernorLadder", "Hold", "RAMP", "STRICT", "SKELETON"]
+__all__ = ["Governor", "GovernorLadder", "RAMP"]
 
 #: Seconds a governor change takes by default: two frames at a 50 ms target, so a step change of the
 #: machine is absorbed within three frames, and well within the quarter second that keeps it from popping.
 RAMP = 0.1
-
-
-@dataclass(frozen=True)
-class Hold:
-    """The line a session asks the governor to hold: at least ``share`` of frames within ``bound`` × target.
-
-    On a machine whose frames scatter, holding a tail costs mean frame time: the governor steers the predicted
-    frame to ``bound`` ÷ (the ``share`` quantile of measured ÷ predicted), so a stricter line leaves more of
-    the time asked for unspent. The line is the user's choice; the default is the promise's.
-    """
-
-    share: float
-    bound: float
-
-    def __post_init__(self) -> None:
-        if not (0.5 <= self.share < 1 and 1.0 <= self.bound <= 1.5):
-            raise ValueError(f"a hold line needs a share in [0.5, 1) and a bound in [1, 1.5]: "
-                             f"got {self.share:g} of frames within {self.bound:g} × target")
-
-    @classmethod
-    def parse(cls, text: str) -> "Hold":
-        """``"p99:1.1"``: 99 % of frames within 1.1 × target. ValueError naming what is wrong."""
-        head, sep, tail = str(text).strip().partition(":")
-        try:
-            if not (sep and head[:1] in "pP" and head[1:]):
-                raise ValueError
-            share, bound = float(head[1:]) / 100.0, float(tail)
-        except ValueError:
-            raise ValueError(f"a hold line is pNN:BOUND, e.g. p99:1.1 (99 % of frames within 1.1 × target); "
-                             f"got {text!r}") from None
-        return cls(share, bound)
-
-    def __str__(self) -> str:
-        return f"p{self.share * 100:g}:{self.bound:g}"
-
-
-#: The promise: at most 1 % of frames over 1.1 × target (the evaluation's ``governor_over`` line).
-STRICT = Hold(0.99, 1.1)
-#: The walking skeleton's line, which ``walkstream demo`` reports against: 95 % within 1.3 × target.
-SKELETON = Hold(0.95, 1.3)
 
 
 @dataclass(frozen=True)
@@ -232,15 +193,16 @@ class Governor:
     aim : share of the target the predicted frame is steered to at most (below 1: a frame's own noise is then
     less often over the target); slack : the band around the aim within which the state is kept
     (± slack × aim), so noise does not make it chatter; hold : the line to hold (``Hold``); window : frames
-    whose measured ÷ predicted times estimate the scatter.
+    whose measured ÷ predicted times estimate the scatter; ledger : frames over which the line's allowance is
+    counted (``Ledger``: frames the budget does not bind leave theirs to the frames it does).
     """
 
     def __init__(self, target: float, ramp: float = RAMP, aim: float = 0.97, slack: float = 0.03,
-                 hold: Hold = STRICT, window: int = 256) -> None:
+                 hold: Hold = STRICT, window: int = 256, ledger: int = 4096) -> None:
         if not (target > 0 and 0 < ramp <= 0.25 and 0 < aim <= 1 and 0 <= slack < 1 and aim * (1 + slack) <= 1
-                and isinstance(hold, Hold) and window >= 8):
+                and isinstance(hold, Hold) and window >= 8 and ledger >= window):
             raise ValueError(f"bad governor settings target={target} ramp={ramp} aim={aim} slack={slack} "
-                             f"hold={hold!r} window={window}")
+                             f"hold={hold!r} window={window} ledger={ledger}")
         self.target, self.ramp, self.aim, self.slack = float(target), float(ramp), float(aim), float(slack)
         # The aim follows the predictor's measured error: measured ÷ predicted time of the last ``window``
         # frames (enough that a 99th percentile rests on a few frames, not on the largest one); steering to
@@ -251,6 +213,11 @@ class Governor:
         self.tail, self.quantile = hold.bound, hold.share
         self.ratios = np.full(int(window), np.nan)
         self.measured = 0  # frames whose ratio was recorded
+        # The line is a share of all frames, and a frame the budget does not bind (everything offered fits below
+        # the aim) is almost never over it: the allowance those frames leave unused is spent on the bound ones,
+        # which may then be steered to a lower quantile of the ratios (``Ledger``).
+        self.ledger = Ledger(hold, int(ledger), least=min(256, int(ledger)))
+        self.binding = True  # the last ``apply`` held back a step that did not fit (or had no ladder to act on)
         self._steer: float | None = None  # ``steer`` as of the last ratio recorded
         self.pending: list[GovernorLadder] = []
         self.ladder: GovernorLadder | None = None
@@ -303,11 +270,17 @@ class Governor:
             if self.predicted > 0:
                 self.ratios[self.measured % self.ratios.size] = float(time) / self.predicted
                 self.measured += 1
+                self.ledger.record(self.binding, float(time) > self.tail * self.target)
                 self._steer = None
             self.predictor.observe(float(time), drawn)
             self.anchor = drawn
             self.seen = None if seen is None else np.unique(np.asarray(seen, np.int64))
             self.expected = False
+
+    def report(self) -> dict:
+        """The predictors' figures (``FramePredictor.report``) and the line's (``Ledger.report``: the share of
+        frames the budget bound and the share over the line, and the quantile of the ratios in force)."""
+        return {**self.predictor.report(), "hold": self.ledger.report()}
 
     @property
     def steer(self) -> float:
@@ -320,7 +293,7 @@ class Governor:
             # half the target for seconds. Until the window holds enough frames, the quantile that lies a frame
             # below their largest stands in (with n frames, the one at 1 − 1/n).
             n = min(self.measured, self.ratios.size)
-            q = float(np.nanquantile(self.ratios, min(self.quantile, 1.0 - 1.0 / n)))
+            q = float(np.nanquantile(self.ratios, min(self.ledger.quantile(), 1.0 - 1.0 / n)))
             # The state is kept while its prediction lies within the band, so a frame is predicted up to
             # (1 + slack) × the aim: the tail is steered from the band's top, not its middle.
             self._steer = float(np.clip(self.tail / (max(q, 1e-9) * (1.0 + self.slack)), 0.5, self.aim))
@@ -359,10 +332,13 @@ class Governor:
         aim = self.steer * self.target
         fits = self.predictor.units_for(aim)  # units a frame at the aim may draw
         if fits is None or self.anchor is None:
+            self.binding = True
             return self.m
         m = min(self.m, cum.size - 1)
         now = self.predictor.predict(rest + cum[m])
         fit = int(max(np.searchsorted(cum, fits - rest, side="right") - 1, 0))
+        # Bound: a step the aim leaves out (every step taken and still under the aim: the budget does not bind).
+        self.binding = fit < cum.size - 1
         if now > (1.0 + self.slack) * aim:
             return fit
         if now < (1.0 - self.slack) * aim:
@@ -419,6 +395,7 @@ class Governor:
         key = np.asarray(key, np.int64)
         level = np.asarray(level, np.float64)
         if lad is None or self.gkey.size == 0:
+            self.binding = True
             self.units, self.down, self.up = (lad.base if lad is not None else 0.0), 0, 0
             self.predicted = self.predictor.predict(self.anchor if self.anchor is not None else self.units) or 0.0
             self._remember(key, level)

@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from client.governor import SKELETON, STRICT, Governor, GovernorLadder, Hold
+from client.governor import Governor, GovernorLadder
+from client.hold import SKELETON, STRICT, Hold, Ledger
 
 DT = 0.05
 TARGET = 0.05
@@ -400,3 +401,57 @@ def test_objects_outside_the_view_are_not_shed_for_time_they_do_not_take():
     spent = np.array(spent[4:])  # one frame to learn the machine, one ramp (two frames) to get there
     assert np.all(spent <= TARGET * (1 + 1e-9)), spent.max() / TARGET
     assert spent[-10:].mean() >= 0.85 * TARGET
+
+
+def test_frames_the_budget_does_not_bind_leave_their_allowance_to_those_it_does():
+    """Two of every three stretches are light (everything the ladder offers fits far below the target, as where
+    a walk looks at few objects) and the frames scatter: the run still holds its line over all frames, and the
+    bound frames, steered by a lower quantile of the ratios, spend more of the time asked for than a governor
+    that counts every frame as bound."""
+    n = 1800
+    world = World(400, seed=5, overhead=0.002)
+    noise = np.random.default_rng(11).lognormal(0.0, 0.12, n)
+    scale = TARGET / world.base
+    heavy = np.arange(n) % 600 >= 400
+    factor = np.where(heavy, 1.0, 0.3)
+    spent = {}
+    for name, ledger in (("ledger", None), ("every frame bound", Ledger(STRICT, size=4096, least=4096))):
+        gov = Governor(TARGET)
+        if ledger is not None:
+            gov.ledger = ledger
+        gov.take(world.ladder())
+        spent[name] = np.array([s for _, s, _ in frames(world, gov, lambda i: scale * noise[i] * factor[i], n)])
+        if name == "ledger":
+            assert gov.ledger.bound_share() == pytest.approx(heavy.mean(), abs=0.01)
+            assert gov.ledger.quantile() < STRICT.share
+    late = np.arange(n) >= 300  # once the ledger has counted its least frames
+    # The line over the run (its first frames turning onto a heavy stretch are over whatever the aim: the
+    # ledger charges them to the allowance before the bound frames get any).
+    assert np.mean(spent["ledger"][late] > STRICT.bound * TARGET) <= 1 - STRICT.share + 0.001
+    bound = heavy & late
+    assert spent["ledger"][bound].mean() >= 1.04 * spent["every frame bound"][bound].mean()
+
+
+def test_a_ledger_steers_by_the_line_until_it_has_counted_and_while_the_run_is_over_it():
+    ledger = Ledger(STRICT, size=1000, margin=0.8, least=100)
+    for _ in range(99):
+        ledger.record(False, False)
+    assert ledger.quantile() == STRICT.share  # too few frames to say
+    for _ in range(151):
+        ledger.record(False, False)
+    for _ in range(250):
+        ledger.record(True, False)
+    assert ledger.bound_share() == pytest.approx(0.5)
+    assert ledger.quantile() == pytest.approx(1 - 0.8 * 0.01 / 0.5)
+    ledger.record(False, True)  # a free frame over the line (a turn the prediction did not know): charged first
+    assert ledger.quantile() == pytest.approx(1 - (0.8 * 0.01 - 1 / 501) / (250 / 501))
+    for _ in range(6):
+        ledger.record(True, True)  # 7 of 507 over: more than the line allows
+    assert ledger.quantile() == STRICT.share
+    for _ in range(1000):
+        ledger.record(False, False)  # the ring forgets what it no longer holds
+    assert ledger.over_share() == 0 and ledger.bound_share() == 0
+    assert ledger.quantile() == pytest.approx(1 - 10 * 0.01)  # never below a tenth of the way to none
+    assert ledger.report()["line"] == "p99:1.1"
+    with pytest.raises(ValueError, match="least"):
+        Ledger(STRICT, size=10, least=20)
