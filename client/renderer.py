@@ -73,6 +73,7 @@ from proto.messages import ALGORITHMS
 from .arena import Arena, Relocation
 from .frame_stats import FrameStats, FrameTerms, Layer
 from .frame_plan import DRAW, in_frustum, plan_frame
+from .llvmpipe import raster_threads
 from .shading import (VERTEX, key_light, morph_targets, pack_colours, pack_normals, packed_tint, target_normals,
                       vertex_records)
 from .sky import Sky
@@ -136,6 +137,7 @@ class Renderer:
         if ctx is not None:
             self.ctx = ctx  # a window's context (``client.window``): drawn offscreen, then blitted
         else:
+            raster_threads()
             try:
                 kwargs = {"backend": backend} if backend else {}
                 self.ctx = moderngl.create_standalone_context(require=330, **kwargs)

@@ -38,6 +38,8 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
+from .llvmpipe import raster_threads
+
 __all__ = ["Window", "WindowError", "KEY_NAMES", "TAP_SLOP"]
 
 #: A press and release of the left button this close (px) is a tap, not a drag.
@@ -141,6 +143,7 @@ class Window:
         self._keys = _key_names(glfw)
         glfw.set_error_callback(_on_glfw_error)
         _errors.clear()  # report this attempt's failure, not an old one
+        raster_threads()  # before the context: llvmpipe sizes its threads when it makes its screen
         if not glfw.init():
             raise WindowError(f"cannot initialise glfw ({_last_error('no reason given')}); {_DISPLAY_HINT}")
         self._initialised = True
