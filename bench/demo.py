@@ -104,6 +104,8 @@ class ServerProcess:
 
 @dataclass
 class Summary:
+    """frames counts the drawn frames after the warm-up, which the figures are over; drawn counts them all."""
+
     frames: int
     target_ms: float
     mean_ms: float
@@ -118,6 +120,7 @@ class Summary:
     warmup_s: float
     mean_ok: bool
     p95_ok: bool
+    drawn: int = 0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -145,6 +148,7 @@ def summarize(run, target: float, warmup: float = WARMUP_S) -> Summary:
         warmup_s=warmup,
         mean_ok=bool(frames) and abs(mean - target * 1e3) <= 0.15 * target * 1e3,
         p95_ok=bool(frames) and p95 <= 1.3 * target * 1e3,
+        drawn=sum(1 for f in run.frames if f.seq >= 0),
     )
 
 

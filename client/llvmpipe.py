@@ -12,6 +12,8 @@ the client asks for one rasterizer thread, unless the user chose a number.
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
+from typing import Iterator, MutableMapping
 
 __all__ = ["VARIABLE", "raster_threads"]
 
@@ -19,17 +21,23 @@ __all__ = ["VARIABLE", "raster_threads"]
 VARIABLE = "LP_NUM_THREADS"
 
 
-def raster_threads(environ=os.environ, cores=None) -> str | None:
-    """Set ``LP_NUM_THREADS`` to 1 where this process may run on one core and it is unset; call it before the
-    first GL context is made. ``cores``: the cores the process may use (default: its affinity). Returns the
-    value in force (None: llvmpipe's own choice)."""
+@contextmanager
+def raster_threads(environ: MutableMapping[str, str] = os.environ, cores=None) -> Iterator[str | None]:
+    """Around the making of a GL context: ``LP_NUM_THREADS`` is 1 where this thread may run on one core and the
+    variable is unset, and the environment is as it was afterwards — the pin is the calling thread's, often for
+    a while only (the evaluation lifts it after its runs), and the processes this one starts later must not
+    inherit it. ``cores``: the cores the thread may use (default: its affinity). Yields the value in force
+    (None: llvmpipe's own choice)."""
     if VARIABLE in environ:
-        return environ[VARIABLE]
+        yield environ[VARIABLE]
+        return
     if cores is None:
-        if not hasattr(os, "sched_getaffinity"):
-            return None
-        cores = os.sched_getaffinity(0)
-    if len(cores) == 1:
-        environ[VARIABLE] = "1"
-        return "1"
-    return None
+        cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else ()
+    if len(cores) != 1:
+        yield None
+        return
+    environ[VARIABLE] = "1"
+    try:
+        yield "1"
+    finally:
+        environ.pop(VARIABLE, None)

@@ -137,10 +137,10 @@ class Renderer:
         if ctx is not None:
             self.ctx = ctx  # a window's context (``client.window``): drawn offscreen, then blitted
         else:
-            raster_threads()
             try:
                 kwargs = {"backend": backend} if backend else {}
-                self.ctx = moderngl.create_standalone_context(require=330, **kwargs)
+                with raster_threads():
+                    self.ctx = moderngl.create_standalone_context(require=330, **kwargs)
             except Exception as exc:
                 raise RendererError(f"cannot create a GL context ({exc}); {_EGL_HINT}") from exc
         lacking = [e for e in _NEEDS if e not in self.ctx.extensions] if self.ctx.version_code < 430 else []

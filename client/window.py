@@ -143,8 +143,9 @@ class Window:
         self._keys = _key_names(glfw)
         glfw.set_error_callback(_on_glfw_error)
         _errors.clear()  # report this attempt's failure, not an old one
-        raster_threads()  # before the context: llvmpipe sizes its threads when it makes its screen
-        if not glfw.init():
+        with raster_threads():  # llvmpipe sizes its threads when it makes its screen: with GLX, at glfw's init
+            initialised = glfw.init()
+        if not initialised:
             raise WindowError(f"cannot initialise glfw ({_last_error('no reason given')}); {_DISPLAY_HINT}")
         self._initialised = True
         _windows += 1
@@ -160,7 +161,8 @@ class Window:
                     raise WindowError(f"no monitor to go fullscreen on ({_last_error('no reason given')})")
                 mode = glfw.get_video_mode(monitor)
                 self.width, self.height = int(mode.size.width), int(mode.size.height)
-            self._handle = glfw.create_window(self.width, self.height, self.title, monitor, None)
+            with raster_threads():
+                self._handle = glfw.create_window(self.width, self.height, self.title, monitor, None)
             if not self._handle:
                 raise WindowError(f"cannot open a {self.width}×{self.height} window with OpenGL 3.3 core "
                                   f"({_last_error('no reason given')}); {_DISPLAY_HINT}")

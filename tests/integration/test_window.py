@@ -113,15 +113,18 @@ def _assert_drawn(image: np.ndarray) -> None:
 ])
 def test_window_client_draws_the_scene(display, server, scenes, tmp_path, which, navigate, extra):
     shot = tmp_path / f"{which}.png"
+    # Applying a large delta holds the loop for a while on a loaded machine, so frames after the warm-up
+    # (the summary's "frames") may be few: the run is longer than the warm-up by more than such a hold, and
+    # what is asserted is that frames were drawn at all ("drawn").
     done = subprocess.run(
         [sys.executable, "-m", "walkstream", "client", server.url, "--scene", scenes[which], "--window",
-         "--navigate", navigate, "--duration", "3", "--width", "320", "--height", "180", "--screenshot", str(shot),
+         "--navigate", navigate, "--duration", "5", "--width", "320", "--height", "180", "--screenshot", str(shot),
          *extra],
         capture_output=True, text=True, timeout=60, env=_env(display), cwd=ROOT,
     )
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads(done.stdout.strip().splitlines()[-1])
-    assert summary["deltas"] >= 1 and summary["errors"] == 0 and summary["frames"] > 0
+    assert summary["deltas"] >= 1 and summary["errors"] == 0 and summary["drawn"] > 0
     assert summary["triangles_mean"] > 0
     image = _read_png(shot)
     assert image.shape == (180, 320, 3)
