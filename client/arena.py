@@ -145,6 +145,13 @@ class Arena:
         self.used += n
         return off
 
+    def reserve(self, n: int) -> None:
+        """Make room for ``n`` more elements with at most one growth, before a batch of ``alloc`` calls that
+        would otherwise grow the buffer step by step (a new buffer and a copy each time)."""
+        n = int(n)
+        if n > 0 and self.used + n > self.capacity:
+            self._grow(self.top + n)
+
     def free(self, offset: int) -> None:
         """Return the block at ``offset`` to the free list, merged with adjacent holes (KeyError: no block there)."""
         off = int(offset)

@@ -112,6 +112,8 @@ class FrameLoop:
             changes = self.cache.apply(delta)
             for rep in changes.frees:
                 self.renderer.free(rep)
+            self.renderer.reserve(sum(g.vertices for _, g in changes.uploads),
+                                  sum(3 * g.faces for _, g in changes.uploads))
             for rep, geometry in changes.uploads:
                 self.renderer.upload(rep, geometry, object_id=self.cache.resident[rep].object)
             if self.splats is not None:
@@ -224,9 +226,14 @@ class FrameLoop:
             for level in range(int(a) + 1, int(b) + 1):
                 rep = k0 + level
                 if rep in self.cache and not self.renderer.has_morph_target(rep):
-                    targets = self.cache.morph_targets(rep)
-                    if targets is not None:
-                        self.renderer.set_morph_target(rep, targets, self.cache.morph_target_colours(rep))
+                    self._give_morph_target(rep)
+
+    def _give_morph_target(self, rep: int) -> None:
+        """Give an uploaded level its morph target, where the cache holds the level below it."""
+        targets = self.cache.morph_targets(rep)
+        if targets is not None:
+            self.renderer.set_morph_target(rep, targets, self.cache.morph_target_colours(rep),
+                                           merge=self.cache.resident[rep].morph)
 
     def _ladder(self, delta: Delta) -> None:
         """Give the governor the delta's ladder, over the steps whose both ends the cache holds (a chain stops at
@@ -286,9 +293,7 @@ class FrameLoop:
             has = self.renderer.have_morph_targets(rep[morph])
             if not has.all():  # a level the schedule's own ramp passes: its target, once, where both levels are here
                 for r in np.unique(rep[morph][~has]).tolist():
-                    targets = self.cache.morph_targets(r)
-                    if targets is not None:
-                        self.renderer.set_morph_target(r, targets, self.cache.morph_target_colours(r))
+                    self._give_morph_target(r)
                 has = self.renderer.have_morph_targets(rep[morph])
             ok[np.nonzero(morph)[0][~has]] = False
         ok |= ~changed

@@ -266,7 +266,13 @@ class Renderer:
         s.bound(slot, lo, hi)
         s.bind(rep, slot)
 
-    def set_morph_target(self, rep: int, targets: np.ndarray, colours: np.ndarray | None = None) -> None:
+    def reserve(self, vertices: int, indices: int) -> None:
+        """Room in the arenas for a batch of uploads of this many vertices and indices (``Arena.reserve``)."""
+        self.vertex_arena.reserve(vertices)
+        self.index_arena.reserve(indices)
+
+    def set_morph_target(self, rep: int, targets: np.ndarray, colours: np.ndarray | None = None,
+                         merge: np.ndarray | None = None) -> None:
         """Give an uploaded representation its morph target (replacing any it had).
 
         targets : (nv, 3) float — the position each of ``rep``'s nv vertices morphs
@@ -274,9 +280,11 @@ class Renderer:
             records with the coarser level's normals (``target_normals``, from the
             rep's own triangles): read back, patched, written — between frames
             nothing is in flight, so the read does not stall. ``colours``: (nv, 3) uint8, the
-            targets' colours (None: each vertex keeps its own). Dropped with the representation
-            (``free``, or ``upload`` over it). Raises KeyError if ``rep`` is not
-            uploaded, ValueError on a wrong shape or non-finite targets.
+            targets' colours (None: each vertex keeps its own). ``merge``: the morph map, which
+            says which vertices share a target (``target_normals``; None: those at equal
+            positions). Dropped with the representation (``free``, or ``upload`` over it).
+            Raises KeyError if ``rep`` is not uploaded, ValueError on a wrong shape or
+            non-finite targets.
         """
         slot = self.meshes.get(int(rep))
         if slot is None:
@@ -295,7 +303,7 @@ class Renderer:
             records["target_colour"] = records["colour"] if colours is None else pack_colours(colours, nv)
             if self._slots.faces[slot]:
                 indices = np.frombuffer(self.index_arena.read(int(self._slots.iblock[slot])), np.uint32)
-                records["target_normal"] = pack_normals(target_normals(t, indices.reshape(-1, 3)))
+                records["target_normal"] = pack_normals(target_normals(t, indices.reshape(-1, 3), merge))
             self.vertex_arena.write(block, records)
             # A morphing vertex travels between its two positions: the box covers both ends.
             c, h = self._slots.centre[slot], self._slots.half[slot]

@@ -7,14 +7,16 @@ algorithm morphs its shading along with the shape, and the colours at both
 (the payload's, ``proto.geometry``), so a morph blends colours too, and its texture
 coordinates (zero where the representation has no texture). Normals are packed in
 bytes (n·½+½, the shader's normalised ``4f1``); a colour's fourth byte says whether
-the vertex has one (255) or takes its object's tint (0). Everything here is numpy over
-whole meshes, no GL: the renderer writes the results into its arenas.
+the vertex has one (255) or takes its object's tint (0). Everything here works on
+whole meshes (numpy, and one compiled kernel for the normals), no GL: the renderer writes the
+results into its arenas.
 """
 
 from __future__ import annotations
 
 import colorsys
 
+import numba
 import numpy as np
 
 from proto.camera import cross3
@@ -29,7 +31,6 @@ __all__ = ["VERTEX", "vertex_records", "pack_colours", "smooth_normals", "target
 #: (``server.scene.texcoords``), so the coarser level's agree with them where the surfaces agree.
 VERTEX = np.dtype([("position", "<f4", 3), ("target", "<f4", 3), ("normal", "u1", 4), ("target_normal", "u1", 4),
                    ("colour", "u1", 4), ("target_colour", "u1", 4), ("uv", "<f4", 2)])
-_AXES = np.arange(3)
 
 
 def pack_colours(colours: np.ndarray | None, n: int) -> np.ndarray:
@@ -111,49 +112,95 @@ def packed_tint(object_id: int) -> int:
 
 
 def smooth_normals(positions: np.ndarray, indices: np.ndarray) -> np.ndarray:
-    """(nv, 3) float32 unit vertex normals: area-weighted face normals summed per vertex (vectorised).
+    """(nv, 3) float32 unit vertex normals: area-weighted face normals summed per vertex.
 
     Simplified meshes do not keep a consistent winding, so a second pass flips
     each face normal to agree with the first pass's sum at its corners before
     summing again: a minority of flipped faces no longer cancels its
-    neighbours. Vertices without (non-degenerate) faces get +z.
+    neighbours. Vertices without (non-degenerate) faces get +z. Raises
+    ValueError on an index outside 0..nv−1.
     """
-    p = np.asarray(positions, np.float64).reshape(-1, 3)
-    f = np.asarray(indices, np.intp).reshape(-1, 3)
-    nv = p.shape[0]
-    if not f.size:
-        out = np.zeros((nv, 3), np.float32)
-        out[:, 2] = 1.0
-        return out
-    tri = p[f]
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    face = e1[:, [1, 2, 0]] * e2[:, [2, 0, 1]] - e1[:, [2, 0, 1]] * e2[:, [1, 2, 0]]  # cross, cheaper than np.cross
-    slots = ((f * 3)[:, :, None] + _AXES).ravel()  # (face, corner, axis) → vertex·3 + axis
-    first = np.bincount(slots, weights=np.repeat(face, 3, axis=0).ravel(), minlength=3 * nv).reshape(nv, 3)
-    face[np.einsum("ij,ikj->i", face, first[f]) < 0] *= -1.0
-    out = np.bincount(slots, weights=np.repeat(face, 3, axis=0).ravel(), minlength=3 * nv).reshape(nv, 3)
-    norm = np.sqrt(np.einsum("ij,ij->i", out, out))
-    bad = norm <= 1e-30
-    norm[bad] = 1.0
-    out /= norm[:, None]
-    out[bad] = (0.0, 0.0, 1.0)
-    return out.astype(np.float32)
+    p = np.ascontiguousarray(positions, np.float64).reshape(-1, 3)
+    f = np.ascontiguousarray(indices, np.intp).reshape(-1, 3)
+    if f.size and (int(f.min()) < 0 or int(f.max()) >= p.shape[0]):
+        raise ValueError(f"indices must lie in 0..{p.shape[0] - 1}")
+    return _smooth_normals(p, f)
 
 
-def target_normals(targets: np.ndarray, indices: np.ndarray) -> np.ndarray:
+def _jit(fn):
+    """numba's ``njit``, cached beside the module (compiled in memory where there is nowhere to keep it).
+
+    Normals are made for every representation a delta adds, between two frames: compiled, the two
+    scatter passes run without the temporaries a numpy scatter needs, which is what kept the frame
+    loop waiting while a large delta was applied."""
+    try:
+        return numba.njit(cache=True, error_model="numpy")(fn)
+    except RuntimeError:  # no cache locator (a read-only install)
+        return numba.njit(cache=False, error_model="numpy")(fn)
+
+
+@_jit
+def _smooth_normals(p: np.ndarray, f: np.ndarray) -> np.ndarray:
+    nv, nf = p.shape[0], f.shape[0]
+    face = np.empty((nf, 3))
+    first = np.zeros((nv, 3))
+    for i in range(nf):
+        a, b, c = f[i, 0], f[i, 1], f[i, 2]
+        e1x, e1y, e1z = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
+        e2x, e2y, e2z = p[c, 0] - p[a, 0], p[c, 1] - p[a, 1], p[c, 2] - p[a, 2]
+        face[i, 0] = e1y * e2z - e1z * e2y
+        face[i, 1] = e1z * e2x - e1x * e2z
+        face[i, 2] = e1x * e2y - e1y * e2x
+        for k in range(3):
+            v = f[i, k]
+            for j in range(3):
+                first[v, j] += face[i, j]
+    total = np.zeros((nv, 3))
+    for i in range(nf):
+        agree = 0.0
+        for k in range(3):
+            v = f[i, k]
+            agree += face[i, 0] * first[v, 0] + face[i, 1] * first[v, 1] + face[i, 2] * first[v, 2]
+        sign = -1.0 if agree < 0.0 else 1.0
+        for k in range(3):
+            v = f[i, k]
+            for j in range(3):
+                total[v, j] += sign * face[i, j]
+    out = np.empty((nv, 3), np.float32)
+    for v in range(nv):
+        norm = np.sqrt(total[v, 0] ** 2 + total[v, 1] ** 2 + total[v, 2] ** 2)
+        if norm <= 1e-30:
+            out[v, 0], out[v, 1], out[v, 2] = 0.0, 0.0, 1.0
+        else:
+            for j in range(3):
+                out[v, j] = total[v, j] / norm
+    return out
+
+
+def target_normals(targets: np.ndarray, indices: np.ndarray, merge: np.ndarray | None = None) -> np.ndarray:
     """(nv, 3) float32 normals for a level's vertices at their morph targets: the coarser level's smooth normals.
 
     At w = 0 a level's triangles collapse onto the coarser level's: those whose
     corners meet degenerate (zero area, no weight) and the rest are the coarser
     triangles. So the smooth normals of the collapsed mesh, with the vertices
-    that share a target position merged into one, are the coarser level's
-    normals (up to summation order), and the lit algorithm morphs its shading
-    along with the shape instead of popping at the switch.
+    that share a target merged into one, are the coarser level's normals (up to
+    summation order), and the lit algorithm morphs its shading along with the
+    shape instead of popping at the switch. ``merge`` (nv,) non-negative ints
+    says which vertices share a target — the morph map, whose entries are the
+    coarser level's vertices — and is the fast way (no sort); without it the
+    vertices at equal target positions are merged (``np.unique``).
     """
     t = np.asarray(targets, np.float32).reshape(-1, 3)
     if t.shape[0] == 0:
         return np.zeros((0, 3), np.float32)
-    unique, inverse = np.unique(t, axis=0, return_inverse=True)
+    if merge is None:
+        unique, inverse = np.unique(t, axis=0, return_inverse=True)
+    else:
+        inverse = np.asarray(merge, np.intp)
+        if inverse.shape != (t.shape[0],) or int(inverse.min()) < 0:
+            raise ValueError(f"merge must be ({t.shape[0]},) non-negative ints, got {inverse.shape}")
+        unique = np.zeros((int(inverse.max()) + 1, 3), np.float32)
+        unique[inverse] = t
     inverse = inverse.ravel()
     return smooth_normals(unique, inverse[np.asarray(indices, np.intp).reshape(-1, 3)])[inverse]
 

@@ -125,6 +125,25 @@ def test_growth_copies_on_the_gpu_and_notifies(ctx: moderngl.Context) -> None:
     a.release()
 
 
+def test_reserve_grows_once_for_a_batch_and_keeps_contents(ctx: moderngl.Context) -> None:
+    a = Arena(ctx, ES, 8)
+    first = a.alloc(4)
+    contents = {first: _fill(1, 4)}
+    a.write(first, contents[first])
+    a.reserve(0)
+    a.reserve(4)  # fits in what is free: nothing moves
+    assert a.grows == 0
+    a.reserve(60)
+    assert a.grows == 1 and a.capacity >= 64
+    for tag, n in enumerate((10, 20, 30), start=2):  # the batch the reserve was for
+        off = a.alloc(n)
+        contents[off] = _fill(tag, n)
+        a.write(off, contents[off])
+    assert a.grows == 1
+    _check(a, contents)
+    a.release()
+
+
 def test_compact_moves_blocks_down_and_returns_the_mapping(ctx: moderngl.Context) -> None:
     a = Arena(ctx, ES, 64, compact_min=10**9)
     moves: list[Relocation | None] = []

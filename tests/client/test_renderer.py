@@ -440,6 +440,25 @@ def test_lit_morph_ends_match_their_levels(renderer: Renderer) -> None:
     expected = smooth_normals(coarse.positions, coarse.indices)[chain.morph[k]]
     got = target_normals(targets, fine.indices)
     assert np.einsum("ij,ij->i", expected, got).min() > 0.999
+    # Merged by the morph map (no sort), the same normals.
+    by_map = target_normals(targets, fine.indices, merge=chain.morph[k])
+    assert np.einsum("ij,ij->i", expected, by_map).min() > 0.999
+    with pytest.raises(ValueError):
+        target_normals(targets, fine.indices, merge=chain.morph[k][:-1])
+
+
+def test_smooth_normals_agree_with_the_neighbours_and_refuse_bad_indices() -> None:
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0]], np.float32)
+    fan = np.array([[4, 0, 1], [4, 1, 2], [4, 2, 3], [4, 3, 0]])
+    normals = smooth_normals(square, fan)
+    np.testing.assert_allclose(normals, np.tile([0.0, 0.0, 1.0], (5, 1)), atol=1e-6)
+    # A face wound the other way is flipped to agree with its neighbours, not cancelled.
+    np.testing.assert_allclose(smooth_normals(square, fan[:, [0, 2, 1]]), -normals, atol=1e-6)  # all reversed
+    np.testing.assert_allclose(smooth_normals(square, np.vstack([fan[:3], fan[3, [0, 2, 1]]])), normals, atol=1e-6)
+    assert smooth_normals(square, np.zeros((0, 3), int))[:, 2].min() == 1.0  # no faces: +z
+    for bad in ([[0, 1, 5]], [[0, -1, 2]]):
+        with pytest.raises(ValueError, match="indices"):
+            smooth_normals(square, np.array(bad))
 
 
 def test_layers_draw_inside_the_fence(renderer: Renderer) -> None:
