@@ -19,6 +19,11 @@ machine is shared and noisy, so only ratios within one run are comparable):
    algorithms; every frame's measured time is compared with what the online
    model predicted for it *before* seeing it (held out). Reference: Zach's
    running c_vertex average on the same frames. Goal: p95 error ≤ 10 %.
+   The same run gives two more figures: how long applying the deltas held the
+   frame loop (against the run and the target; a delta is applied whole
+   between two frames), and the scatter of identical work — consecutive
+   frames drawing the same vertices (within 1 %) — which no cost model can
+   predict and which the frame governor's aim has to leave room for.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["linearity", "client_cpu", "cost_error", "replay", "run"]
+__all__ = ["linearity", "client_cpu", "cost_error", "replay", "delta_apply", "frame_noise", "run"]
 
 Progress = Callable[[str, int, int], None]
 
@@ -218,6 +223,27 @@ def replay(frames: list[dict], warmup: float = 2.0) -> dict:
     }
 
 
+def delta_apply(upload_s: np.ndarray, duration: float, target: float) -> dict:
+    """How long applying deltas held the frame loop: ``upload_s`` is each frame's time spent applying the deltas
+    that arrived since the frame before (``FrameRecord.upload_time``)."""
+    u = np.asarray(upload_s, np.float64)
+    total, worst = float(u.sum()), float(u.max()) if u.size else 0.0
+    return {"total_s": round(total, 3), "share_of_run": round(total / max(duration, 1e-9), 4),
+            "max_ms": round(worst * 1e3, 2), "max_vs_target": round(worst / target, 3),
+            "frames_with_deltas": int((u > 0).sum())}
+
+
+def frame_noise(t: np.ndarray, time_s: np.ndarray, vertices: np.ndarray, warmup: float = 2.0,
+                within: float = 0.01) -> dict:
+    """The scatter of identical work: time ratio of consecutive frames (after ``warmup``) whose vertices agree
+    within ``within``, as quantiles (None without such pairs)."""
+    t, y, v = (np.asarray(a, np.float64) for a in (t, time_s, vertices))
+    pair = (t[1:] >= warmup) & (v[:-1] > 0) & (y[:-1] > 0) & (np.abs(v[1:] / np.maximum(v[:-1], 1.0) - 1) <= within)
+    r = y[1:][pair] / y[:-1][pair]
+    q = (lambda k: round(float(np.percentile(r, k)), 3) if r.size else None)  # noqa: E731
+    return {"pairs": int(r.size), "p50": q(50), "p95": q(95), "p99": q(99)}
+
+
 def cost_error(store: Path, *, duration: float = 20.0, target: float = 0.05, viewport=(640, 360),
                algorithms=("flat", "lit", "textured"), progress: Progress = _noop) -> dict:
     """Serve ``store``, run the real client over its tour, and replay its frames through the cost models."""
@@ -240,6 +266,9 @@ def cost_error(store: Path, *, duration: float = 20.0, target: float = 0.05, vie
     frames = [{"t": f.t, "time": f.time, "splats": f.splats, "terms": f.terms} for f in run.frames if f.terms]
     out = replay(frames)
     times = np.array([f.time for f in run.frames if f.t >= 2.0]) * 1e3
+    out["delta_apply"] = delta_apply(np.array([f.upload_time for f in run.frames]), duration, target)
+    out["identical_work"] = frame_noise(np.array([f.t for f in run.frames]), np.array([f.time for f in run.frames]),
+                                        np.array([f.vertices for f in run.frames]))
     out.update(scene=scene, target_ms=target * 1e3, frame_mean_ms=round(float(times.mean()), 2) if times.size else 0.0,
                frame_p95_ms=round(float(np.percentile(times, 95)), 2) if times.size else 0.0,
                algorithms_drawn=_algorithm_share(run.frames))
@@ -294,4 +323,10 @@ def run(store: Path | None, *, duration: float = 20.0, quick: bool = False, prog
             f"{cost['target_ms']:.0f} ms; draws by algorithm {cost['algorithms_drawn']}",
             f"  goal p95 ≤ 10 %: {'met' if cost['goal_met'] else 'NOT met'}",
         ]
+        d, n = cost["delta_apply"], cost["identical_work"]
+        lines.append(f"  applying deltas (between frames): {d['total_s']:.2f} s = {100 * d['share_of_run']:.1f} % of the "
+                     f"run, longest {d['max_ms']:.0f} ms = {d['max_vs_target']:.2f} × target")
+        if n["pairs"]:
+            lines.append(f"  identical work, consecutive frames ({n['pairs']} pairs, vertices within 1 %): time ratio "
+                         f"p50 {n['p50']:.3f}, p95 {n['p95']:.3f}, p99 {n['p99']:.3f} (scatter no model predicts)")
     return {"linearity": lin, "client_cpu": cpu, "cost_model": cost, "lines": lines}

@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from bench.render import replay
+from bench.render import delta_apply, frame_noise, replay
 
 
 def _frames(n, c_vertex=2e-7, c_draw=1e-5, overhead=1e-3, noise=0.02, seed=0):
@@ -35,6 +35,23 @@ def test_replay_scores_the_online_model_held_out_against_zach_and_the_last_frame
     json.dumps(result)
 
 
+def test_frame_noise_pairs_only_consecutive_frames_of_the_same_work():
+    t = np.arange(10) * 0.5
+    time_s = np.array([9, 9, 1.0, 1.2, 1.0, 2.0, 2.0, 2.2, 1.0, 1.0])
+    vertices = np.array([5, 5, 100, 100, 100, 300, 300, 300, 100, 100.5])
+    noise = frame_noise(t, time_s, vertices, warmup=1.0)
+    # pairs from t = 1 s on with equal vertices: 1.2/1.0, 1.0/1.2, 2.0/2.0, 2.2/2.0, 1.0/1.0 (the changes are not)
+    assert noise["pairs"] == 5 and noise["p50"] == 1.0
+    assert noise["p99"] == round(float(np.percentile([1.2, 1 / 1.2, 1.0, 1.1, 1.0], 99)), 3)
+    assert frame_noise(t, time_s, np.arange(10) * 100.0 + 100)["pairs"] == 0
+
+
+def test_delta_apply_sums_the_loop_held_against_run_and_target():
+    d = delta_apply(np.array([0.0, 0.2, 0.0, 0.05, 0.0]), duration=10.0, target=0.05)
+    assert d == {"total_s": 0.25, "share_of_run": 0.025, "max_ms": 200.0, "max_vs_target": 4.0,
+                 "frames_with_deltas": 2}
+
+
 def test_bench_render_command_prints_its_figures_and_json(auditorium_store):
     cmd = [sys.executable, "-m", "walkstream", "bench", "render", "--quick", "--store", str(auditorium_store),
            "--duration", "8", "--json"]
@@ -50,5 +67,8 @@ def test_bench_render_command_prints_its_figures_and_json(auditorium_store):
     assert cost["chosen"] in ("vertex", "draw", "stages")
     assert set(cost["report"]["models"]) == {"vertex", "draw", "stages"}
     assert sum(cost["algorithms_drawn"].values()) > 0.99  # every frame's draws, split by algorithm
-    for needle in ("Frame time against triangles", "Client CPU per frame", "Cost-model error"):
+    assert cost["delta_apply"]["total_s"] > 0 and cost["delta_apply"]["frames_with_deltas"] >= 1
+    assert cost["identical_work"]["pairs"] > 0 and cost["identical_work"]["p99"] >= cost["identical_work"]["p50"]
+    for needle in ("Frame time against triangles", "Client CPU per frame", "Cost-model error", "applying deltas",
+                   "identical work"):
         assert needle in done.stderr
