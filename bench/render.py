@@ -324,8 +324,8 @@ def run(store: Path | None, *, duration: float = 20.0, quick: bool = False, prog
             f"  goal p95 ≤ 10 %: {'met' if cost['goal_met'] else 'NOT met'}",
         ]
         d, n = cost["delta_apply"], cost["identical_work"]
-        lines.append(f"  applying deltas (between frames): {d['total_s']:.2f} s = {100 * d['share_of_run']:.1f} % of the "
-                     f"run, longest {d['max_ms']:.0f} ms = {d['max_vs_target']:.2f} × target")
+        lines.append(f"  applying deltas (between frames): {d['total_s']:.2f} s = {100 * d['share_of_run']:.1f} % "
+                     f"of the run, longest {d['max_ms']:.0f} ms = {d['max_vs_target']:.2f} × target")
         if n["pairs"]:
             lines.append(f"  identical work, consecutive frames ({n['pairs']} pairs, vertices within 1 %): time ratio "
                          f"p50 {n['p50']:.3f}, p95 {n['p95']:.3f}, p99 {n['p99']:.3f} (scatter no model predicts)")
