@@ -4,7 +4,8 @@ On a shared machine the same work takes a different time from one second to the 
 pins the server and the client to different cores (``split_cores``, when there are at least two), and
 beside each run a ``Calibration`` thread times a small fixed workload once a second: a run whose
 calibration is slow ran on a slow machine, whatever its method. The workload is numpy sorting (single
-threaded, and it releases the GIL), so it does not hold up the client's frames.
+threaded, and it releases the GIL), so it does not hold up the client's frames. ``frame_noise`` measures the
+machine from a run's own frames: how far apart consecutive frames of the same work fall.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import time
 
 import numpy as np
 
-__all__ = ["split_cores", "calibration_workload", "Calibration"]
+__all__ = ["split_cores", "calibration_workload", "Calibration", "frame_noise"]
 
 #: Values the workload sorts, and how many times.
 _VALUES, _ROUNDS = 100_000, 4
@@ -107,3 +108,15 @@ class Calibration:
     def samples(self) -> dict:
         n = min(len(self._t), len(self._ms))
         return {"t": [float(v) for v in self._t[:n]], "ms": [float(v) for v in self._ms[:n]]}
+
+
+def frame_noise(t: np.ndarray, time_s: np.ndarray, work: np.ndarray, warmup: float = 2.0,
+                within: float = 0.01) -> dict:
+    """The scatter of identical work: the time ratio of consecutive frames (after ``warmup`` s) whose work
+    (vertices or triangles drawn) agrees within ``within``, as quantiles (None without such pairs). No cost model
+    predicts it, so a governor holding a tail has to leave room for it."""
+    t, y, v = (np.asarray(a, np.float64) for a in (t, time_s, work))
+    pair = (t[1:] >= warmup) & (v[:-1] > 0) & (y[:-1] > 0) & (np.abs(v[1:] / np.maximum(v[:-1], 1.0) - 1) <= within)
+    r = y[1:][pair] / y[:-1][pair]
+    q = (lambda k: round(float(np.percentile(r, k)), 3) if r.size else None)  # noqa: E731
+    return {"pairs": int(r.size), "p50": q(50), "p95": q(95), "p99": q(99)}

@@ -35,7 +35,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["linearity", "client_cpu", "cost_error", "replay", "delta_apply", "frame_noise", "run"]
+__all__ = ["linearity", "client_cpu", "cost_error", "replay", "delta_apply", "run"]
 
 Progress = Callable[[str, int, int], None]
 
@@ -233,17 +233,6 @@ def delta_apply(upload_s: np.ndarray, duration: float, target: float) -> dict:
             "frames_with_deltas": int((u > 0).sum())}
 
 
-def frame_noise(t: np.ndarray, time_s: np.ndarray, vertices: np.ndarray, warmup: float = 2.0,
-                within: float = 0.01) -> dict:
-    """The scatter of identical work: time ratio of consecutive frames (after ``warmup``) whose vertices agree
-    within ``within``, as quantiles (None without such pairs)."""
-    t, y, v = (np.asarray(a, np.float64) for a in (t, time_s, vertices))
-    pair = (t[1:] >= warmup) & (v[:-1] > 0) & (y[:-1] > 0) & (np.abs(v[1:] / np.maximum(v[:-1], 1.0) - 1) <= within)
-    r = y[1:][pair] / y[:-1][pair]
-    q = (lambda k: round(float(np.percentile(r, k)), 3) if r.size else None)  # noqa: E731
-    return {"pairs": int(r.size), "p50": q(50), "p95": q(95), "p99": q(99)}
-
-
 def cost_error(store: Path, *, duration: float = 20.0, target: float = 0.05, viewport=(640, 360),
                algorithms=("flat", "lit", "textured"), progress: Progress = _noop) -> dict:
     """Serve ``store``, run the real client over its tour, and replay its frames through the cost models."""
@@ -267,6 +256,8 @@ def cost_error(store: Path, *, duration: float = 20.0, target: float = 0.05, vie
     out = replay(frames)
     times = np.array([f.time for f in run.frames if f.t >= 2.0]) * 1e3
     out["delta_apply"] = delta_apply(np.array([f.upload_time for f in run.frames]), duration, target)
+    from bench.machine import frame_noise
+
     out["identical_work"] = frame_noise(np.array([f.t for f in run.frames]), np.array([f.time for f in run.frames]),
                                         np.array([f.vertices for f in run.frames]))
     out.update(scene=scene, target_ms=target * 1e3, frame_mean_ms=round(float(times.mean()), 2) if times.size else 0.0,

@@ -8,7 +8,8 @@ import sys
 
 import numpy as np
 
-from bench.render import delta_apply, frame_noise, replay
+from bench.machine import frame_noise
+from bench.render import delta_apply, replay
 
 
 def _frames(n, c_vertex=2e-7, c_draw=1e-5, overhead=1e-3, noise=0.02, seed=0):

@@ -58,6 +58,23 @@ def test_governor_checks_fail_where_it_misses_and_say_so():
     assert c["governor_over"]["value"] == pytest.approx(1.0)
 
 
+def test_the_mean_check_names_the_ceiling_the_machines_scatter_sets():
+    res = _with_governor(synthetic_results(), scale=0.8)
+    run = run_at(res, "optimization", 50.0, governor=True)
+    frames = run["frames"]
+    n = len(frames["t"])
+    frames["triangles"] = [100_000] * n  # the same work every frame, its time alternating 40 / 52 ms
+    frames["time_ms"] = [40.0 if i % 2 else 52.0 for i in range(n)]
+    c = _by_name(res)["governor_mean_bound"]
+    noise = c["identical_work"]
+    assert noise["pairs"] > 10 and noise["p99"] == pytest.approx(1.3)
+    assert "at most about 0.85 ×" in c["line"] and "1.300 × apart" in c["line"]
+    # frames whose work changes every frame say nothing of the machine
+    frames["triangles"] = [100_000 if i % 2 else 120_000 for i in range(n)]
+    c = _by_name(res)["governor_mean_bound"]
+    assert c["identical_work"]["pairs"] == 0 and "apart" not in c["line"]
+
+
 def test_the_flip_ratio_is_skipped_where_full_detail_never_exceeds_the_target():
     """Den Haag at 50 ms: full detail is cheaper than the target everywhere, both runs draw the whole scene and
     their FLIPs differ by sampling noise; the ratio is not a verdict on the governor there."""
