@@ -295,6 +295,9 @@ class _Renderer:
     def __init__(self) -> None:
         self.meshes: dict[int, int] = {}
 
+    def reserve(self, vertices, indices) -> None:
+        pass
+
     def upload(self, rep, geometry, object_id=None) -> None:
         self.meshes[rep] = object_id
 
