@@ -45,6 +45,9 @@ def test_frame_noise_pairs_only_consecutive_frames_of_the_same_work():
     assert noise["pairs"] == 5 and noise["p50"] == 1.0
     assert noise["p99"] == round(float(np.percentile([1.2, 1 / 1.2, 1.0, 1.1, 1.0], 99)), 3)
     assert frame_noise(t, time_s, np.arange(10) * 100.0 + 100)["pairs"] == 0
+    # Only pairs whose both frames take at least ``least``: here those of 2.0-2.2 s.
+    slow = frame_noise(t, time_s, vertices, warmup=1.0, least=1.5)
+    assert slow["pairs"] == 2 and slow["p99"] == round(float(np.percentile([1.0, 1.1], 99)), 3)
 
 
 def test_delta_apply_sums_the_loop_held_against_run_and_target():
