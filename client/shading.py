@@ -128,7 +128,8 @@ def smooth_normals(positions: np.ndarray, indices: np.ndarray) -> np.ndarray:
 
 
 def _jit(fn):
-    """numba's ``njit``, cached beside the module (compiled in memory where there is nowhere to keep it).
+    """numba's ``njit``, cached beside the module (compiled in memory where there is nowhere to keep it); the
+    server's kernels have their own (``server.select.kernels.jit``), which the client may not import.
 
     Normals are made for every representation a delta adds, between two frames: compiled, the two
     scatter passes run without the temporaries a numpy scatter needs, which is what kept the frame
