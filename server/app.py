@@ -433,14 +433,8 @@ def create_app(
                     wake = min(wake, deadline)
                 if session.dirty and session.state is SessionState.ACTIVE:
                     wake = min(wake, conn.last_save + limits.save_interval)
-                if not conn.inbox.empty():
-                    # What arrived goes first: a due selection then reads the newest pose, never a stale one.
-                    item = conn.inbox.get_nowait()
-                else:
-                    try:
-                        item = await asyncio.wait_for(conn.inbox.get(), max(0.0, wake - now))
-                    except asyncio.TimeoutError:
-                        item = _TICK
+                # What arrived goes first: a due selection then reads the newest pose, never a stale one.
+                item = await conn.inbox.get(wake - now, _TICK)
                 if item is GONE:
                     break
                 if item is WAKE:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections import deque
 
 from fastapi import WebSocket, WebSocketDisconnect
 
@@ -22,7 +23,7 @@ from .limits import RateGuard, ReplicaLimits
 from .metrics import Metrics
 from .session import Session
 
-__all__ = ["Connection", "read_frames", "error", "SOCKET_GONE", "GONE", "WAKE", "CLOSE_POLICY"]
+__all__ = ["Connection", "Inbox", "read_frames", "error", "SOCKET_GONE", "GONE", "WAKE", "CLOSE_POLICY"]
 
 #: The inbox's markers: the socket ended; wake the loop (a close was requested).
 GONE = object()
@@ -37,6 +38,72 @@ def error(code: str, detail: str = "") -> Error:
     return Error(code=code, message=detail or ERROR_CODES[code])
 
 
+class Inbox:
+    """A bounded queue between a connection's reader and its session loop, awaited with a deadline.
+
+    What ``asyncio.wait_for(queue.get(), timeout)`` does, without its cost: on Python 3.11 that starts a task
+    for every ``get``, and the loop waits on it once for every message of every session. Here a wait is one
+    future and one timer. One consumer (the session loop) and one producer that may wait (the reader).
+    """
+
+    def __init__(self, maxsize: int) -> None:
+        self.maxsize = int(maxsize)
+        self._items: deque = deque()
+        self._getter: asyncio.Future | None = None
+        self._putter: asyncio.Future | None = None
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def empty(self) -> bool:
+        return not self._items
+
+    def put_nowait(self, item) -> None:
+        """Queue ``item``; raises ``asyncio.QueueFull`` when ``maxsize`` items wait."""
+        if len(self._items) >= self.maxsize:
+            raise asyncio.QueueFull
+        self._items.append(item)
+        _wake(self._getter)
+
+    async def put(self, item) -> None:
+        """Queue ``item``, first waiting while the inbox is full."""
+        while len(self._items) >= self.maxsize:
+            self._putter = asyncio.get_running_loop().create_future()
+            try:
+                await self._putter
+            finally:
+                self._putter = None
+        self.put_nowait(item)
+
+    def get_nowait(self):
+        """The oldest item; raises ``asyncio.QueueEmpty`` when there is none."""
+        if not self._items:
+            raise asyncio.QueueEmpty
+        item = self._items.popleft()
+        _wake(self._putter)
+        return item
+
+    async def get(self, timeout: float, default=None):
+        """The oldest item, waiting at most ``timeout`` seconds for one; ``default`` if none came."""
+        if not self._items:
+            loop = asyncio.get_running_loop()
+            self._getter = waiter = loop.create_future()
+            timer = loop.call_later(max(0.0, timeout), _wake, waiter)
+            try:
+                await waiter
+            finally:
+                timer.cancel()
+                self._getter = None
+            if not self._items:
+                return default
+        return self.get_nowait()
+
+
+def _wake(waiter: asyncio.Future | None) -> None:
+    if waiter is not None and not waiter.done():
+        waiter.set_result(None)
+
+
 class Connection:
     """One websocket's session and the loop's controls: its inbox, a close request, when it was last heard."""
 
@@ -44,7 +111,7 @@ class Connection:
         self.ws = ws
         self.session = session
         self.address = address
-        self.inbox: asyncio.Queue = asyncio.Queue(maxsize=256)
+        self.inbox = Inbox(maxsize=256)
         self.inbox_bytes = 0  # bytes of the frames waiting in ``inbox``
         self.drained = asyncio.Event()  # set when the loop takes a frame out: the reader may queue again
         self.reads_paused = 0  # times the reader stopped reading because ``inbox_bytes`` were waiting
