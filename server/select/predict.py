@@ -130,12 +130,30 @@ def _vector(v, name: str) -> np.ndarray:
 
 
 def _sample(eye, forward, up) -> np.ndarray:
-    """(9,) eye, unit forward, unit up orthogonal to forward; ValueError on bad input."""
-    e = _vector(eye, "eye")
-    f, n = _unit(_vector(forward, "forward"))
+    """(9,) eye, unit forward, unit up orthogonal to forward; ValueError on bad input.
+
+    ``_unit`` and ``_orthogonal_up`` in scalar arithmetic, the three vectors checked in one array: it runs for
+    every pose of every session, and numpy's per-call overhead on 3-vectors is most of what they cost.
+    """
+    try:
+        a = np.array((eye, forward, up), np.float64)
+    except (TypeError, ValueError):  # ragged or not numbers: the per-vector checks name which
+        a = None
+    if a is None or a.shape != (3, 3) or not np.isfinite(a).all():
+        a = np.stack([_vector(eye, "eye"), _vector(forward, "forward"), _vector(up, "up")])
+    (ex, ey, ez), (fx, fy, fz), (ux, uy, uz) = a.tolist()
+    n = math.sqrt(fx * fx + fy * fy + fz * fz)
     if n <= 1e-9:
         raise ValueError("forward must not be zero")
-    return np.concatenate([e, f, _orthogonal_up(f, _vector(up, "up"))])
+    fx, fy, fz = fx / n, fy / n, fz / n
+    d = ux * fx + uy * fy + uz * fz
+    ux, uy, uz = ux - d * fx, uy - d * fy, uz - d * fz
+    m = math.sqrt(ux * ux + uy * uy + uz * uz)
+    if m <= 1e-9:  # a degenerate up gets any perpendicular
+        ux, uy, uz = _perpendicular(np.array((fx, fy, fz))).tolist()
+    else:
+        ux, uy, uz = ux / m, uy / m, uz / m
+    return np.array((ex, ey, ez, fx, fy, fz, ux, uy, uz))
 
 
 def _line(powers: np.ndarray, x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -474,3 +474,37 @@ def test_a_fast_tour_is_not_a_string_of_teleports() -> None:
 
     assert resets(200.0) >= len(keys) - 2
     assert resets(max(200.0, 3.0 * tour_speed(keys))) <= 1
+
+
+_VEC = st.lists(st.floats(-1e4, 1e4, allow_nan=False, width=64), min_size=3, max_size=3)
+
+
+@given(_VEC, _VEC, _VEC)
+@settings(max_examples=300, deadline=None)
+def test_a_sample_is_the_pose_with_unit_forward_and_an_orthogonal_unit_up(eye, forward, up):
+    """The scalar sample agrees with the vector formulas it restates: unit forward, Gram-Schmidt up."""
+    from server.select.predict import _orthogonal_up, _sample, _unit
+
+    f, n = _unit(np.array(forward))
+    if n <= 1e-9:
+        with pytest.raises(ValueError, match="forward"):
+            _sample(eye, forward, up)
+        return
+    x = _sample(eye, forward, up)
+    want = np.concatenate([eye, f, _orthogonal_up(f, np.array(up))])
+    np.testing.assert_allclose(x, want, rtol=1e-9, atol=1e-9)
+    assert abs(np.linalg.norm(x[3:6]) - 1) < 1e-12 and abs(np.linalg.norm(x[6:]) - 1) < 1e-9
+
+
+@pytest.mark.parametrize("eye, forward, up, message", [
+    ([1, 2], [0, 0, 1], [0, 1, 0], "eye must be 3 numbers"),
+    ([0, 0, float("nan")], [1, 0, 0], [0, 1, 0], "eye must be finite"),
+    ([0, 0, 0], [1, 0, float("inf")], [0, 1, 0], "forward must be finite"),
+    ([0, 0, 0], [1, 0, 0], [0, 1], "up must be 3 numbers"),
+    ([0, 0, 0], [0, 0, 0], [0, 1, 0], "forward must not be zero"),
+])
+def test_a_bad_sample_names_the_vector_that_is_wrong(eye, forward, up, message):
+    from server.select.predict import _sample
+
+    with pytest.raises(ValueError, match=message):
+        _sample(eye, forward, up)
