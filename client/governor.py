@@ -42,6 +42,13 @@ __all__ = ["Governor", "GovernorLadder", "RAMP"]
 #: machine is absorbed within three frames, and well within the quarter second that keeps it from popping.
 RAMP = 0.1
 
+#: Frames predicted under this share of the target do not teach the aim. Such a frame goes over the line only by
+#: a stall (more than four times its prediction), which no aim prevents, while its time is mostly fixed per-frame
+#: costs that scatter more, relatively, than a frame near the target does. (A stretch of cheap frames — a view of almost
+#: nothing — filled the window with their ratios and held the aim at its floor until as many frames near the
+#: target had replaced them.)
+NEAR = 0.25
+
 
 @dataclass(frozen=True)
 class GovernorLadder:
@@ -193,8 +200,9 @@ class Governor:
     aim : share of the target the predicted frame is steered to at most (below 1: a frame's own noise is then
     less often over the target); slack : the band around the aim within which the state is kept
     (± slack × aim), so noise does not make it chatter; hold : the line to hold (``Hold``); window : frames
-    whose measured ÷ predicted times estimate the scatter; ledger : frames over which the line's allowance is
-    counted (``Ledger``: frames the budget does not bind leave theirs to the frames it does).
+    (of those predicted at ``NEAR`` × the target or more) whose measured ÷ predicted times estimate the
+    scatter; ledger : frames over which the line's allowance is counted (``Ledger``: frames the budget does
+    not bind leave theirs to the frames it does).
     """
 
     def __init__(self, target: float, ramp: float = RAMP, aim: float = 0.97, slack: float = 0.03,
@@ -268,10 +276,11 @@ class Governor:
         drawn = self.units if vertices is None else float(vertices)
         if self.units > 0 and drawn > 0 and time > 0 and np.isfinite(time) and np.isfinite(drawn):
             if self.predicted > 0:
-                self.ratios[self.measured % self.ratios.size] = float(time) / self.predicted
-                self.measured += 1
+                if self.predicted >= NEAR * self.target:
+                    self.ratios[self.measured % self.ratios.size] = float(time) / self.predicted
+                    self.measured += 1
+                    self._steer = None
                 self.ledger.record(self.binding, float(time) > self.tail * self.target)
-                self._steer = None
             self.predictor.observe(float(time), drawn)
             self.anchor = drawn
             self.seen = None if seen is None else np.unique(np.asarray(seen, np.int64))

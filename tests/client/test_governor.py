@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from client.governor import Governor, GovernorLadder
+from client.governor import NEAR, Governor, GovernorLadder
 from client.hold import SKELETON, STRICT, Hold, Ledger
 
 DT = 0.05
@@ -455,3 +455,19 @@ def test_a_ledger_steers_by_the_line_until_it_has_counted_and_while_the_run_is_o
     assert ledger.report()["line"] == "p99:1.1"
     with pytest.raises(ValueError, match="least"):
         Ledger(STRICT, size=10, least=20)
+
+
+def test_a_stretch_of_cheap_frames_does_not_lower_the_aim_for_the_frames_near_the_target():
+    """Frames far below the target (a view of almost nothing) whose times scatter wildly against their
+    predictions: they could only go over the line by a stall, so they do not teach the aim; frames near the
+    target that scatter still do (``test_one_stall_early_in_a_run_does_not_hold_the_aim_down``)."""
+    world = World(400, seed=5, overhead=0.002)
+    scale = TARGET / world.base
+    gov = Governor(TARGET)
+    gov.take(world.ladder())
+    frames(world, gov, lambda i: scale, 300)
+    assert gov.steer == pytest.approx(gov.aim)
+    cheap = np.random.default_rng(4).uniform(1.0, 3.0, 600)
+    run = frames(world, gov, lambda i: 0.02 * scale * cheap[i], 600)
+    assert max(predicted for _, _, predicted in run[10:]) < NEAR * TARGET  # the stretch is all cheap frames
+    assert gov.steer == pytest.approx(gov.aim)
