@@ -93,7 +93,10 @@ def _kill_when_streaming(server: ServerProcess, watcher: _Watcher, thread: threa
 def _drawn_throughout(run: ClientRun) -> None:
     """Every frame since the first delta drew the held scene, with no gap in the frames across the outage."""
     streaming = [f for f in run.frames if f.seq >= 0]
-    assert streaming and all(f.triangles > 0 for f in streaming), "a frame drew nothing while the server was gone"
+    empty = [(round(f.t, 3), f.seq, f.draws, f.governor_down, f.governor_up) for f in streaming if f.triangles == 0]
+    lost = [(round(r.lost_at, 3), round(r.resumed_at, 3)) for r in run.reconnects]
+    assert streaming and not empty, (f"a frame drew nothing while the server was gone: (t, seq, draws, governor "
+                                     f"down, up) {empty[:10]} of {len(streaming)}; outages {lost}")
     t = np.array([f.t for f in run.frames])
     assert np.max(np.diff(t)) < 0.5, f"the frame loop stalled for {np.max(np.diff(t)):.2f} s"
 
