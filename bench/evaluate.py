@@ -216,7 +216,6 @@ def derive_viewpoints(store: str | Path, duration: float, warmup: float, *, view
 # ---------------------------------------------------------------- one run
 
 
-_FRAME_KEYS = ("t", "time_ms", "compute_ms", "triangles", "reps", "bytes", "morphs", "predicted_ms", "seq")
 
 
 def _frames_dict(frames) -> dict[str, list]:
@@ -231,6 +230,10 @@ def _frames_dict(frames) -> dict[str, list]:
         "morphs": [int(f.morphs) for f in frames],
         "predicted_ms": [float(f.predicted_cost) * 1e3 for f in frames],
         "seq": [int(f.seq) for f in frames],
+        # The governor's own view of each frame (0 and False without one): whether a stretch under the target
+        # was held by its aim (bound) or had nothing finer left to draw.
+        "governor_predicted_ms": [float(f.governor_predicted) * 1e3 for f in frames],
+        "governor_bound": [bool(f.governor_bound) for f in frames],
     }
 
 

@@ -49,6 +49,7 @@ class FrameRecord:
     governor_up: int = 0  # ... and finer
     governor_cost: float = 0.0  # vertices of what it drew, as the ladder counts them (0: no governor)
     governor_predicted: float = 0.0  # the time it predicted for the frame (s; 0: no prediction yet)
+    governor_bound: bool = False  # it held back a step that did not fit its aim, or had no ladder (False: all drawn)
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,8 @@ from server.scene.store import SCHEMA_VERSION, SceneStore
 SCHEMA_TOP = {"scene", "store", "target_ms", "budgets_ms", "viewport", "fov_y", "tau_s", "seed", "duration_s",
               "warmup_s", "viewpoints", "methods", "runs", "images"}
 SCHEMA_RUN = {"method", "target_ms", "solver", "predict", "morph", "frames", "quality", "summary"}
-SCHEMA_FRAMES = {"t", "time_ms", "compute_ms", "triangles", "reps", "bytes", "morphs", "predicted_ms"}
+SCHEMA_FRAMES = {"t", "time_ms", "compute_ms", "triangles", "reps", "bytes", "morphs", "predicted_ms",
+                 "governor_predicted_ms", "governor_bound"}
 SCHEMA_SUMMARY = {"frames", "compute_mean_ms", "compute_max_ms", "frame_mean_ms", "frame_max_ms", "frame_std_ms",
                   "frame_p95_ms", "triangles_mean", "reps_mean", "bytes_total", "flip_mean", "psnr_mean",
                   "ssim_mean", "popping_mean", "errors", "late", "deltas"}
@@ -188,6 +189,9 @@ def test_evaluate_runs_every_spec_on_a_real_server_and_client(demo_store):
         assert f["t"] == sorted(f["t"])
         assert any(c > 0 for c in f["compute_ms"]), run["method"]
         assert sum(f["bytes"]) > 0
+        # The governor's own prediction of each frame is recorded where it governs, and nowhere else.
+        assert any(p > 0 for p in f["governor_predicted_ms"]) == run["governor"], run["method"]
+        assert run["governor"] or not any(f["governor_bound"])
         assert run["quality"]["flip"] == [] and run["quality"]["frame"] == []
         s = run["summary"]
         assert SCHEMA_SUMMARY <= set(s)
