@@ -234,6 +234,9 @@ def _frames_dict(frames) -> dict[str, list]:
         # was held by its aim (bound) or had nothing finer left to draw.
         "governor_predicted_ms": [float(f.governor_predicted) * 1e3 for f in frames],
         "governor_bound": [bool(f.governor_bound) for f in frames],
+        # What set the aim: the share of the target steered to, and the quantile of the measured scatter behind it.
+        "governor_aim": [round(float(f.governor_aim), 4) for f in frames],
+        "governor_quantile": [round(float(f.governor_quantile), 4) for f in frames],
     }
 
 

@@ -431,11 +431,11 @@ def run_frames(
         terms = stats.terms
         gov = loop.governor
         if gov is not None:
-            drew = (gov.down, gov.up, gov.units, gov.predicted, gov.binding)
+            drew = (gov.down, gov.up, gov.units, gov.predicted, gov.binding, gov.steer, gov.ledger.quantile())
             keys = rows.key[here]
             gov.observe(stats.time, stats.vertices, keys if stats.seen is None else keys[stats.seen])
         else:
-            drew = (0, 0, 0.0, 0.0, False)
+            drew = (0, 0, 0.0, 0.0, False, 0.0, 0.0)
         report = FrameReport(
             frame=frame, t=t, time=min(max(stats.time, 1e-9), 60.0), triangles=stats.triangles,
             vertices=stats.vertices, draws=stats.draws, selection=cache.seq, pixels=stats.pixels,
@@ -456,7 +456,7 @@ def run_frames(
                                               "pixels": list(terms.pixels), "draws": list(terms.draws)},
             bytes=loop.applied_bytes, compute=last.compute if last else 0.0,
             governor_down=drew[0], governor_up=drew[1], governor_cost=drew[2], governor_predicted=drew[3],
-            governor_bound=bool(drew[4]),
+            governor_bound=bool(drew[4]), governor_aim=float(drew[5]), governor_quantile=float(drew[6]),
         )
         if trace:
             veg, res = loop.drawn_vegetation

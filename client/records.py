@@ -50,6 +50,8 @@ class FrameRecord:
     governor_cost: float = 0.0  # vertices of what it drew, as the ladder counts them (0: no governor)
     governor_predicted: float = 0.0  # the time it predicted for the frame (s; 0: no prediction yet)
     governor_bound: bool = False  # it held back a step that did not fit its aim, or had no ladder (False: all drawn)
+    governor_aim: float = 0.0  # the share of the target it steered the frame to (``Governor.steer``; 0: no governor)
+    governor_quantile: float = 0.0  # the quantile of measured ÷ predicted that aim came from (``Ledger.quantile``)
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ SCHEMA_TOP = {"scene", "store", "target_ms", "budgets_ms", "viewport", "fov_y", 
               "warmup_s", "viewpoints", "methods", "runs", "images"}
 SCHEMA_RUN = {"method", "target_ms", "solver", "predict", "morph", "frames", "quality", "summary"}
 SCHEMA_FRAMES = {"t", "time_ms", "compute_ms", "triangles", "reps", "bytes", "morphs", "predicted_ms",
-                 "governor_predicted_ms", "governor_bound"}
+                 "governor_predicted_ms", "governor_bound", "governor_aim", "governor_quantile"}
 SCHEMA_SUMMARY = {"frames", "compute_mean_ms", "compute_max_ms", "frame_mean_ms", "frame_max_ms", "frame_std_ms",
                   "frame_p95_ms", "triangles_mean", "reps_mean", "bytes_total", "flip_mean", "psnr_mean",
                   "ssim_mean", "popping_mean", "errors", "late", "deltas"}
@@ -192,6 +192,12 @@ def test_evaluate_runs_every_spec_on_a_real_server_and_client(demo_store):
         # The governor's own prediction of each frame is recorded where it governs, and nowhere else.
         assert any(p > 0 for p in f["governor_predicted_ms"]) == run["governor"], run["method"]
         assert run["governor"] or not any(f["governor_bound"])
+        # ... and so is the aim it steered to, a share of the target within the governor's own limits.
+        if run["governor"]:
+            assert all(0.5 <= a <= 1.0 for a in f["governor_aim"]), run["method"]
+            assert all(0.5 <= q < 1.0 for q in f["governor_quantile"]), run["method"]
+        else:
+            assert not any(f["governor_aim"]) and not any(f["governor_quantile"])
         assert run["quality"]["flip"] == [] and run["quality"]["frame"] == []
         s = run["summary"]
         assert SCHEMA_SUMMARY <= set(s)
