@@ -5,13 +5,20 @@ the draws, the pixels, the objects without steps — and a part that grows with
 the geometry the steps add. In the ladder's units (vertices), t = s · (α + U):
 s the machine's seconds per unit now, α the fixed part in units.
 
-- s follows the machine at once: the median of the last three frames'
-  t / (α + U), so one slow frame alone does not move it and two in a row do.
+- s follows the machine at once: the last frame's t / (α + U), or the median
+  of the last three's, whichever has the smaller held-out error over the
+  window. Where a slow frame is followed by another more often than not (a
+  machine whose slow stretches last a frame or two) the last frame predicts
+  the next best; where frames scatter independently the median does, as it
+  lets one slow frame pass.
 - α is a property of the scene and the renderer, not of the machine's speed
   (a slower machine scales both parts): the least-squares line of t on U over
   the last ``window`` frames gives it as intercept ÷ slope, refitted only while
   the frames' units vary enough to tell the two apart — which the governor's
-  own steps provide.
+  own steps provide. A frame that misses its prediction by more than ``jump``
+  waits for the next to say what it was: if that one misses the speed before
+  it too, the machine changed speed and the line starts afresh; otherwise it
+  was a stall.
 
 Model no more than the frames justify: the simplest predictor, α = 0 (the time
 per unit drawn, ``ratio``), is used unless the fitted one (``offset``) has a
@@ -31,28 +38,53 @@ import numpy as np
 
 __all__ = ["FramePredictor"]
 
+#: The median of the last three frames' rates is used instead of the last frame's only when its held-out error is
+#: below this share of the last frame's.
+MEDIAN_MARGIN = 0.9
+
 
 class _Track:
-    """One predictor t = s · (α + U) with its own running s and held-out errors."""
+    """One predictor t = s · (α + U) with its own held-out errors, for each of its two speeds s (the last
+    frame's rate, the median of the last three's), and the one in force."""
+
+    SPEEDS = ("last", "median")
 
     def __init__(self, window: int) -> None:
         self.alpha = 0.0
         self.rates: deque = deque(maxlen=3)
-        self.errors: deque = deque(maxlen=window)
-        self.s: float | None = None
+        self.speeds: dict[str, float] = {}
+        self.errors: dict[str, deque] = {k: deque(maxlen=window) for k in self.SPEEDS}
+        self.speed = "last"
 
-    def predict(self, units: float) -> float | None:
-        return None if self.s is None else self.s * (self.alpha + units)
+    @property
+    def s(self) -> float | None:
+        return self.speeds.get(self.speed)
+
+    def predict(self, units: float, speed: str | None = None) -> float | None:
+        s = self.speeds.get(speed or self.speed)
+        return None if s is None else s * (self.alpha + units)
+
+    def rate(self, time: float, units: float) -> float:
+        return time / max(self.alpha + units, 1e-12)
 
     def observe(self, time: float, units: float) -> None:
-        guess = self.predict(units)
-        if guess is not None and guess > 0:
-            self.errors.append(abs(guess / time - 1.0))
-        self.rates.append(time / max(self.alpha + units, 1e-12))
-        self.s = sorted(self.rates)[len(self.rates) // 2] if len(self.rates) != 2 else sum(self.rates) / 2
+        for k in self.SPEEDS:
+            guess = self.predict(units, k)
+            if guess is not None and guess > 0:
+                self.errors[k].append(abs(guess / time - 1.0))
+        self.rates.append(self.rate(time, units))
+        r = sorted(self.rates)
+        self.speeds = {"last": self.rates[-1], "median": r[len(r) // 2] if len(r) != 2 else sum(r) / 2}
+        # The median takes over only where it is clearly better (ties and too few frames keep the last frame's
+        # rate, the simpler of the two): frames that scatter independently give it a tenth or more less error.
+        if len(self.errors["median"]) >= 8 and self.error("median") < MEDIAN_MARGIN * self.error("last"):
+            self.speed = "median"
+        else:
+            self.speed = "last"
 
-    def error(self) -> float:
-        return sum(self.errors) / len(self.errors) if self.errors else float("inf")
+    def error(self, speed: str | None = None) -> float:
+        e = self.errors[speed or self.speed]
+        return sum(e) / len(e) if e else float("inf")
 
 
 class FramePredictor:
@@ -76,11 +108,12 @@ class FramePredictor:
         self.times: deque = deque(maxlen=window)
         self.units: deque = deque(maxlen=window)
         self.chosen = "ratio"  # the predictor in force (``_choose``, after each frame)
-        self.misses = 0  # frames in a row the prediction missed by more than ``jump``
+        self.missed = False  # the last frame missed its prediction by more than ``jump`` ...
+        self.before: float | None = None  # ... and the speed in force before the first of such frames in a row
 
     def _choose(self) -> str:
         """"offset" where it has earned it (enough frames, clearly smaller held-out error), else "ratio"."""
-        if len(self.offset.errors) >= self.least and len(self.ratio.errors) >= self.least \
+        if len(self.offset.errors["last"]) >= self.least and len(self.ratio.errors["last"]) >= self.least \
                 and self.offset.error() < self.margin * self.ratio.error():
             return "offset"
         return "ratio"
@@ -113,17 +146,26 @@ class FramePredictor:
         if not (time > 0 and units > 0 and np.isfinite(time) and np.isfinite(units)):
             return
         guess = self.predict(units)
-        self.misses = self.misses + 1 if guess is not None and abs(guess / time - 1.0) > self.jump else 0
-        if self.misses >= 2:
-            # The machine changed speed: its frames before and after would bend the line. The fixed part in
-            # units does not change with the speed, so it is kept; the line is fitted afresh from here.
-            self.times.clear()
-            self.units.clear()
+        if self.missed and self.before is not None:
+            old = self.before * (self.alpha + units)
+            if abs(old / time - 1.0) > self.jump:
+                # This frame misses the speed before the last frame too: the machine changed speed, and the frames
+                # before would bend the line. The fixed part in units does not change with the speed, so it is
+                # kept; the line starts afresh from the last frame.
+                keep = (self.times[-1], self.units[-1])
+                self.times.clear()
+                self.units.clear()
+                self.times.append(keep[0])
+                self.units.append(keep[1])
+        miss = guess is not None and abs(guess / time - 1.0) > self.jump
+        if miss and not self.missed:
+            self.before = self.rate
+        self.missed = miss
         self.ratio.observe(time, units)
         self.offset.observe(time, units)
         self.times.append(float(time))
         self.units.append(float(units))
-        if len(self.units) >= self.least:
+        if len(self.units) >= self.least and not miss:  # (a frame that missed waits for the next to say what it was)
             self._refit()
         self.chosen = self._choose()
 
@@ -141,7 +183,8 @@ class FramePredictor:
         """Both predictors' mean held-out relative errors, the fixed part fitted, and which is in force."""
         return {"chosen": self.chosen, "ratio_error": _finite(self.ratio.error()),
                 "offset_error": _finite(self.offset.error()), "offset_alpha": self.offset.alpha,
-                "frames": len(self.ratio.errors)}
+                "speed": self._track().speed, "last_error": _finite(self._track().error("last")),
+                "median_error": _finite(self._track().error("median")), "frames": len(self.ratio.errors["last"])}
 
 
 def _finite(x: float) -> float | None:

@@ -56,6 +56,58 @@ def test_a_machine_twice_slower_is_followed_after_two_frames():
         pred.observe(float(t), float(u))  # ... two in a row do
 
 
+def _drifting(n: int, seed: int, rho: float = 0.9, sigma: float = 0.05) -> np.ndarray:
+    """A machine's speed that drifts in stretches (log speed AR(1)): a slow frame is followed by a slow one."""
+    rng = np.random.default_rng(seed)
+    log = np.zeros(n)
+    for i in range(1, n):
+        log[i] = rho * log[i - 1] + rng.normal(0.0, sigma)
+    return np.exp(log)
+
+
+def test_the_speed_is_the_last_frames_or_the_median_whichever_predicts_better():
+    units = np.full(300, 0.03)
+    drifting = FramePredictor()
+    _feed(drifting, units, 1.2 * units * _drifting(units.size, seed=4))
+    independent = FramePredictor()
+    _feed(independent, units, 1.2 * units * np.random.default_rng(4).lognormal(0.0, 0.1, units.size))
+    assert drifting.report()["speed"] == "last"
+    assert drifting.report()["last_error"] < drifting.report()["median_error"]
+    assert independent.report()["speed"] == "median"
+    assert independent.report()["median_error"] < 0.9 * independent.report()["last_error"]
+
+
+def test_with_the_last_frame_in_force_a_twice_slower_machine_is_followed_after_one_frame():
+    """On a drifting machine: the frame after the step is predicted at the new speed, and the fixed part, which
+    the step does not change, is kept (the frames before the step are not fitted together with those after)."""
+    rng = np.random.default_rng(6)
+    n, step = 400, 300
+    units = rng.uniform(0.01, 0.04, n)
+    speed = _drifting(n, seed=6, rho=0.95, sigma=0.01) * np.where(np.arange(n) < step, 1.0, 2.0)
+    time = speed * (0.015 + units)
+    pred = FramePredictor()
+    for i, (u, t) in enumerate(zip(units, time)):
+        if i in (step, step + 1):
+            assert pred.report()["speed"] == "last" and pred.chosen == "offset"
+            guess = pred.predict(u)
+            assert guess is not None and (guess / t < 0.75 if i == step else abs(guess / t - 1) < 0.05), (i, guess / t)
+        pred.observe(float(t), float(u))
+    assert pred.alpha == pytest.approx(0.015, rel=0.1)
+
+
+def test_a_stall_is_not_taken_for_a_new_speed():
+    rng = np.random.default_rng(8)
+    units = rng.uniform(0.01, 0.04, 200)
+    time = 1.2 * (0.015 + units) * _drifting(units.size, seed=8, rho=0.95, sigma=0.01)
+    time[150] *= 3.0  # one stalled frame: the next is back to the machine's speed
+    pred = FramePredictor()
+    _feed(pred, units[:152], time[:152])
+    # The frame after the stall was predicted at the stall's rate; the one after that is not.
+    guess = pred.predict(float(units[152]))
+    assert guess is not None and abs(guess / time[152] - 1) < 0.05
+    assert pred.alpha == pytest.approx(0.015, rel=0.1)
+
+
 @pytest.mark.parametrize("time, units", [(float("nan"), 0.02), (0.03, 0.0), (-1.0, 0.02), (0.03, float("inf"))])
 def test_frames_that_say_nothing_are_ignored(time, units):
     pred = FramePredictor()
