@@ -75,8 +75,8 @@ class _Track:
         self.rates.append(self.rate(time, units))
         r = sorted(self.rates)
         self.speeds = {"last": self.rates[-1], "median": r[len(r) // 2] if len(r) != 2 else sum(r) / 2}
-        # The median takes over only where it is clearly better (ties and too few frames keep the last frame's
-        # rate, the simpler of the two): frames that scatter independently give it a tenth or more less error.
+        # The median takes over only where it is clearly better: ties and too few frames keep the last frame's
+        # rate, the simpler of the two.
         if len(self.errors["median"]) >= 8 and self.error("median") < MEDIAN_MARGIN * self.error("last"):
             self.speed = "median"
         else:
@@ -146,7 +146,7 @@ class FramePredictor:
         if not (time > 0 and units > 0 and np.isfinite(time) and np.isfinite(units)):
             return
         guess = self.predict(units)
-        if self.missed and self.before is not None:
+        if self.missed and self.before is not None and self.times:
             old = self.before * (self.alpha + units)
             if abs(old / time - 1.0) > self.jump:
                 # This frame misses the speed before the last frame too: the machine changed speed, and the frames
