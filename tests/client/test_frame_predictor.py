@@ -92,7 +92,10 @@ def test_with_the_last_frame_in_force_a_twice_slower_machine_is_followed_after_o
             guess = pred.predict(u)
             assert guess is not None and (guess / t < 0.75 if i == step else abs(guess / t - 1) < 0.05), (i, guess / t)
         pred.observe(float(t), float(u))
-    assert pred.alpha == pytest.approx(0.015, rel=0.1)
+        if i == step + 1:
+            assert len(pred.units) == 2  # the line restarted at the step
+        if i == step + 30:  # refitted on the new speed's frames only
+            assert pred.alpha == pytest.approx(0.015, rel=0.1)
 
 
 def test_a_stall_is_not_taken_for_a_new_speed():
@@ -105,6 +108,7 @@ def test_a_stall_is_not_taken_for_a_new_speed():
     # The frame after the stall was predicted at the stall's rate; the one after that is not.
     guess = pred.predict(float(units[152]))
     assert guess is not None and abs(guess / time[152] - 1) < 0.05
+    assert len(pred.units) == pred.units.maxlen  # the line was not restarted
     assert pred.alpha == pytest.approx(0.015, rel=0.1)
 
 
