@@ -20,7 +20,12 @@ import numpy as np
 
 from .snapshot import dump_fields, load_fields
 
-__all__ = ["RobustRLS", "RESCALE_SHARE"]
+__all__ = ["RobustRLS", "RESCALE_SHARE", "BOX_TIE"]
+
+#: How far (in scaled units, where the coefficients are about 1) a coordinate may lie past its bound and still count
+#: as on it in ``RobustRLS._project``: a term never excited sits at its bound give or take rounding, and taking that
+#: for out of the box pins it in the same solve as a coordinate truly out, so the answer turned on rounding's sign.
+BOX_TIE = 1e-12
 
 #: A detected change rescales the coefficients that explain — or at their prior's magnitude would explain — at
 #: least this share of the surprising frame.
@@ -190,7 +195,7 @@ class RobustRLS:
         active = np.zeros(self.k, bool)
         bound = np.zeros(self.k)
         for _ in range(self.k):
-            low, high = self.phi < lo, self.phi > hi
+            low, high = self.phi < lo - BOX_TIE, self.phi > hi + BOX_TIE
             if not (low.any() or high.any()):
                 break
             bound[low], bound[high] = lo[low], hi[high]

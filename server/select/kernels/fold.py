@@ -33,6 +33,7 @@ import math
 
 import numpy as np
 
+from ..rls import BOX_TIE
 from .choose import choose
 from .jit import jit
 
@@ -196,11 +197,11 @@ def _project(j, k, phi, cov, scale, lower, upper):
     for _ in range(k):
         anyout = False
         for i in range(k):
-            if phi[j, i] < lo[i]:
+            if phi[j, i] < lo[i] - BOX_TIE:
                 bound[i] = lo[i]
                 active[i] = True
                 anyout = True
-            elif phi[j, i] > hi[i]:
+            elif phi[j, i] > hi[i] + BOX_TIE:
                 bound[i] = hi[i]
                 active[i] = True
                 anyout = True
