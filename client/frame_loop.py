@@ -444,6 +444,7 @@ def run_frames(
             terms=None if terms is None else AlgorithmTerms(
                 triangles=terms.triangles, vertices=terms.vertices, pixels=terms.pixels, draws=terms.draws),
             governor_down=drew[0], governor_up=drew[1], governor_cost=min(max(drew[2], 0.0), MAX_LADDER_VERTICES),
+            governor_spare=gov is not None and not drew[4],
         )
         last = loop.last
         record = FrameRecord(

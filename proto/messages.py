@@ -327,6 +327,9 @@ class FrameReport(_Message):
     governor_down: Count = 0
     governor_up: Count = 0
     governor_cost: Annotated[float, Field(ge=0.0, le=MAX_LADDER_VERTICES)] = 0.0
+    #: The governor drew every step up its ladder offers and predicted the frame still under its aim: time asked
+    #: for is left unspent for want of finer levels (the server then sends more of them ahead)
+    governor_spare: bool = False
 
 
 class Camera(Pose):

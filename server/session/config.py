@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -63,6 +64,9 @@ class SessionConfig:
     ahead_share : with the governor, the levels sent ahead for its ladder (``select.ladder.prefetch``) take at
         most this share of the bytes the selection's own adds take (plus ``ahead_floor`` bytes): every byte
         sent is a byte the client decodes and uploads between frames, so the link's headroom is not the limit
+    ahead_gain : that allowance grows to (1 + ahead_gain) × as the share of recent frames whose governor drew every
+        step up and still had time to spare (``FrameReport.governor_spare``) goes to 1: where the picture is
+        short of finer levels, the time between frames to decode them is there too
     cost_model : "online" — F&S's coefficients fitted to the frame reports by robust recursive least
         squares, the simplest adequate model chosen (``select.cost_online``); "zach" — the running
         c_vertex average alone (Zach 2002, 4.2), for comparison
@@ -86,6 +90,7 @@ class SessionConfig:
     link_share: float = 0.8
     ahead_share: float = 0.5
     ahead_floor: int = 64 * 1024
+    ahead_gain: float = 3.0
     budget_quantile: float = 0.95
     observe_hz: float = 20.0
     bandwidth: float = 10.0e6
@@ -93,8 +98,8 @@ class SessionConfig:
     def __post_init__(self) -> None:
         if not self.observe_hz > 0:
             raise ValueError(f"observe_hz must be positive, got {self.observe_hz}")
-        if not (self.ahead_share >= 0 and self.ahead_floor >= 0):
-            raise ValueError(f"ahead_share and ahead_floor must be non-negative, got {self.ahead_share}, "
-                             f"{self.ahead_floor}")
+        if not (self.ahead_share >= 0 and self.ahead_floor >= 0 and 0 <= self.ahead_gain < math.inf):
+            raise ValueError(f"ahead_share, ahead_floor and ahead_gain must be finite and non-negative, got "
+                             f"{self.ahead_share}, {self.ahead_floor}, {self.ahead_gain}")
         if self.cost_model not in ("online", "zach"):
             raise ValueError(f"cost_model must be 'online' or 'zach', got {self.cost_model!r}")

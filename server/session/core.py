@@ -216,6 +216,7 @@ class Session:
             columns = (col(terms.triangles), col(terms.vertices), col(terms.pixels), col(terms.draws))
             self.cost.observe_frame(report.time, report.vertices, columns, report.splats)
         self.pipeline.observe_pixels(report)
+        self.pipeline.observe_governor(report)
 
     def _hello(self, hello: Hello, now: float) -> list[BaseModel]:
         if self.state is not SessionState.AWAIT_HELLO:
@@ -462,6 +463,7 @@ class Session:
             "bandwidth": self.delivery.bandwidth,
             "deferred": pipeline.deferred,
             "fallbacks": pipeline.fallbacks,
+            "ahead_spare": pipeline.spare,
             "gate": dict(pipeline.last_gate),
         }
 

@@ -39,6 +39,9 @@ __all__ = ["Pipeline", "MEAN_FLOOR"]
 #: With the governor, the least median measured ÷ predicted ratio the budget is divided by (it then exceeds
 #: the target by up to 1 / MEAN_FLOOR in model seconds, for a model found to price frames that much too high).
 MEAN_FLOOR = 0.67
+#: The weight of each observed frame report in ``Pipeline.spare``: it follows a change within about a second
+#: of reports (they are observed at ``SessionConfig.observe_hz``).
+SPARE_WEIGHT = 0.1
 
 
 class Pipeline:
@@ -47,7 +50,7 @@ class Pipeline:
     #: The fields a snapshot holds (among the session's fields), by their snapshot names.
     STATE = {"_pixel_scale": "pixel_scale"}
     #: ... and those that may come and go with the streaming code (a snapshot without them still loads).
-    OPTIONAL = {"deferred": "deferred", "fallbacks": "fallbacks", "ladder_shed": "shed"}
+    OPTIONAL = {"deferred": "deferred", "fallbacks": "fallbacks", "ladder_shed": "shed", "ahead_spare": "spare"}
 
     def __init__(self, config) -> None:
         self.config = config
@@ -69,6 +72,7 @@ class Pipeline:
         self.last_tail = 1.0  # the budget's tail ratio at the last selection
         self.ladder_to = np.zeros(0, np.int64)  # where the last delta's ladder steps go (kept resident)
         self.shed = 0.0  # the share of its selection the last ladder's steps down could save
+        self.spare = 0.0  # the recent share of frames whose governor took every step up with time to spare
         self.deferred = 0  # choices that waited for bytes
         self.fallbacks = 0  # ... and were drawn coarser meanwhile
 
@@ -100,6 +104,7 @@ class Pipeline:
         self.prev_rep = np.full(table.n_objects, -1, np.int64)
         self.drawn = np.zeros(0, np.int64)
         self.ladder_to = np.zeros(0, np.int64)
+        self.spare = 0.0
 
     # ------------------------------------------------------------------ feedback
 
@@ -110,6 +115,11 @@ class Pipeline:
         if report.pixels > 0 and predicted > 0:
             ratio = float(np.clip(report.pixels / predicted, 0.02, 4.0))
             self.pixel_scale += 0.1 * (ratio - self.pixel_scale)
+
+    def observe_governor(self, report: FrameReport) -> None:
+        """Fold in whether a governed frame ran out of steps up with time to spare (``spare``, an average)."""
+        if report.governor_cost > 0:  # 0: the frame was not governed
+            self.spare += SPARE_WEIGHT * (float(report.governor_spare) - self.spare)
 
     # ------------------------------------------------------------------ one selection
 
@@ -226,11 +236,12 @@ class Pipeline:
 
     def _ahead(self, reps: np.ndarray, view, mirror: CacheMirror) -> np.ndarray:
         """Neighbouring levels of the selection sent ahead for the governor's steps, with the bytes the gate left
-        (at most ``ahead_share`` of what the selection's adds take, plus ``ahead_floor``)."""
+        (at most ``ahead_share`` of what the selection's adds take, plus ``ahead_floor``; up to 1 + ``ahead_gain``
+        times that while the governor reports time to spare with every step up taken)."""
         gate, config = self.last_gate, self.config
         used = float(gate.get("bytes", 0))
         left = max(float(gate.get("budget", gate.get("link", 0.0))) - used, 0.0)
-        left = min(left, config.ahead_share * used + config.ahead_floor)
+        left = min(left, (config.ahead_share * used + config.ahead_floor) * (1.0 + config.ahead_gain * self.spare))
         cam = view.views[0] if isinstance(view, Interval) else view
         return prefetch(reps, cam, rep_bytes=self.table.rep_bytes, left=left, rep_error=self._ladder_errors(),
                         **self._arrays(mirror))

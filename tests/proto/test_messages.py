@@ -83,6 +83,9 @@ def test_wrong_types_are_refused():
     _refused(msgpack.packb({"type": "camera", "t": 1.0, "extra": 1, **POSE}), "invalid")
     _refused(msgpack.packb({"type": "frame_report", "frame": True, "t": 1.0, "time": 0.05, "triangles": 1,
                             "vertices": 1, "draws": 1}), "invalid")
+    err = _refused(msgpack.packb({"type": "frame_report", "frame": 1, "t": 1.0, "time": 0.05, "triangles": 1,
+                                  "vertices": 1, "draws": 1, "governor_spare": "yes"}), "invalid")
+    assert "governor_spare" in err.message
 
 
 def test_ranges_are_enforced():

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from proto.messages import LADDER_DEPTH, Delta
+from proto.messages import LADDER_DEPTH, Delta, FrameReport
+
+from server.session import SessionConfig
 
 from .test_pipeline import Link, scenes  # noqa: F401  (the fixture)
 
@@ -37,6 +39,33 @@ def test_each_delta_carries_a_ladder_over_what_the_client_holds(scenes):  # noqa
         deep += int((to < rep - 1).sum())
     # Coarser levels held (chains deeper than one level among them), finer ones sent ahead with the bytes left.
     assert downs > 0 and ups > 0 and deep > 0
+
+
+def _governed_frames(spare: bool):
+    """Frame reports of a governed client that says, every frame, whether it had time to spare."""
+    def report(frame, t, drawn):
+        return FrameReport(frame=frame, t=t, time=0.003, triangles=20_000, vertices=12_000, draws=40,
+                           selection=drawn, governor_cost=12_000.0, governor_spare=spare)
+    return report
+
+
+def test_more_levels_are_sent_ahead_while_the_governor_has_time_to_spare(scenes):  # noqa: F811
+    """A governor that drew every step up and still had time left asks, by its reports, for finer levels: the
+    server sends more ahead for its ladder, and no more than the usual while the governor is bound."""
+    ahead, spare = {}, {}
+    # An allowance small enough to bind on the demo scene, whose few levels are otherwise all sent ahead at once.
+    config = SessionConfig(ahead_share=0.0, ahead_floor=8 * 1024)
+    for says in (False, True):
+        link = Link(scenes, one_way=0.03, budget=0.004, governor=True, report=_governed_frames(says), config=config)
+        link.run(8.0)
+        rep_bytes = link.session.pipeline.table.rep_bytes
+        sent = 0
+        for _, d in link.deltas[2:]:  # from the third delta on: the reports have had a second to tell
+            beyond = [a.rep for a in d.add if a.rep not in set(d.selection)]
+            sent += int(rep_bytes[beyond].sum())
+        ahead[says], spare[says] = sent, link.session.pipeline.spare
+    assert spare[False] == 0.0 and spare[True] > 0.9
+    assert ahead[True] > 1.5 * ahead[False] > 0
 
 
 def test_without_the_governor_no_ladder_is_sent(scenes):  # noqa: F811

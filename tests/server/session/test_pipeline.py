@@ -40,7 +40,7 @@ class Link:
     """A session and a simulated client joined by a link with a fixed one-way delay."""
 
     def __init__(self, scenes, *, one_way=0.02, config=None, predict=True, morph=True, poses=None, budget=0.05,
-                 governor=False):
+                 governor=False, report=None):
         self.session = Session(scenes, "sim", config or SessionConfig(), stopwatch=perf_counter)
         self.index = next(iter(scenes.values())).index
         self.one_way = one_way
@@ -52,6 +52,8 @@ class Link:
         self.resident: set[int] = set()
         self.resident_log: list[tuple[float, frozenset]] = []
         self.poses = poses or Tour(self.index.tour).pose_at
+        self.report = report  # (frame, client time, the delta drawn) → the FrameReport sent with the pose, or None
+        self.frame = 0
         hello = Hello(protocol=PROTOCOL_VERSION, scene=self.index.name, viewport=[640, 360],
                       target_frame_time=budget, predict=predict, morph=morph, governor=governor)
         self._to_client(self.session.receive(encode(hello), 0.0))
@@ -92,8 +94,11 @@ class Link:
             if self.now >= next_frame:
                 t = self.client_time()
                 eye, forward, up = self.poses(t - OFFSET)
+                drawn = self.deltas[-1][1].seq if self.deltas else -1
+                report = None if self.report is None else self.report(self.frame, t, drawn)
+                self.frame += 1
                 self._to_server(Camera(t=t, eye=list(map(float, eye)), forward=list(map(float, forward)),
-                                       up=list(map(float, up))))
+                                       up=list(map(float, up)), report=report))
                 if on_frame is not None:
                     on_frame(t, self.schedule.at(t))
                 next_frame += 1.0 / FPS
