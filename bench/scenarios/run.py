@@ -317,6 +317,7 @@ def drift(ctx: Context) -> dict:
         return float(np.median(v)) if v else math.nan
 
     settle = started + 3.0
+    held = [f for f in run.frames if settle <= f.t < stopped and f.seq >= 0 and f.budget > 0]
     fig = {
         "anchor": a.source, "load_s": [rounded(started), rounded(stopped)], "processes": load.count,
         "before": window_stats(run.frames, WARMUP_S, started),
@@ -328,6 +329,9 @@ def drift(ctx: Context) -> dict:
         "triangles_before": rounded(median_of("triangles", WARMUP_S, started), 0),
         "triangles_settled": rounded(median_of("triangles", settle, stopped), 0),
         "triangles_after": rounded(median_of("triangles", stopped + 1.0, math.inf), 0),
+        # A cut solver that cannot fit the budget under the load sends its coarsest cut, priced over it.
+        "over_budget_settled": rounded(float(np.mean([f.predicted_cost > f.budget * (1 + 1e-9) for f in held]))
+                                       if held else math.nan, 3),
         **_run_figures(run),
     }
     ok, text = drift_verdict(fig, ctx.target_ms)

@@ -62,9 +62,13 @@ def drift_verdict(fig: Mapping[str, Any], target_ms: float) -> tuple[bool, str]:
     coeff = f"c_vertex ×{c1 / c0:.2f}" if c0 > 0 and math.isfinite(c1) else "c_vertex —"
     after = fig.get("triangles_after")
     after = f" → {after:.0f} after" if after is not None and math.isfinite(after) else ""
+    over = fig.get("over_budget_settled")
+    # Said, not judged: a cut solver's floor under the load is the coarsest cut, whatever its cost model knows.
+    floor = (f"; {100 * over:.0f} % of those frames drew a delta priced over its budget (the solver's floor)"
+             if over is not None and math.isfinite(over) and over > 0 else "")
     return ok, (f"mean {fig['before']['mean_ms']:.1f} ms before, {fig['first_second']['mean_ms']:.1f} ms in the "
                 f"first second of load, {_fmt_ratio(settled, target_ms)} from 3 s on; {coeff}, triangles "
-                f"{fig['triangles_before']:.0f} → {fig['triangles_settled']:.0f}{after}")
+                f"{fig['triangles_before']:.0f} → {fig['triangles_settled']:.0f}{after}{floor}")
 
 
 #: A cut solver's frames below the coarsest level may cost this much more than the coarsest frame (medians).

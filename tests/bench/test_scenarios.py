@@ -239,6 +239,12 @@ def test_frame_time_verdicts_hold_their_limits():
     ok, line = drift_verdict(drift, 50.0)
     assert ok and "c_vertex ×2.00" in line
     assert not drift_verdict({**drift, "settled": {**st(60.0), "mean_ms": 58.0}}, 50.0)[0]
+    assert "over its budget" not in line
+    # A solver at its floor is said so, and judged by the same line.
+    floor = {**drift, "settled": {**st(60.0), "mean_ms": 58.0}, "over_budget_settled": 0.9}
+    ok, line = drift_verdict(floor, 50.0)
+    assert not ok and "90 % of those frames drew a delta priced over its budget" in line
+    assert drift_verdict({**floor, "settled": drift["settled"]}, 50.0)[0]
     net = {"p95_ms": 55.0, "errors": 0, "late": 1, "reconnects": 0, "bytes": 1e6, "lost_chunks": 3}
     assert network_verdict(net, 50.0)[0]
     assert not network_verdict({**net, "p95_ms": 55.1}, 50.0)[0]
