@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from pydantic import ValidationError
@@ -66,6 +68,14 @@ def test_more_levels_are_sent_ahead_while_the_governor_has_time_to_spare(scenes)
         ahead[says], spare[says] = sent, link.session.pipeline.spare
     assert spare[False] == 0.0 and spare[True] > 0.9
     assert ahead[True] > 1.5 * ahead[False] > 0
+
+
+@pytest.mark.parametrize("bad", [dict(ahead_gain=-1.0), dict(ahead_gain=math.inf), dict(ahead_gain=math.nan),
+                                 dict(ahead_share=-0.1), dict(ahead_floor=-1)])
+def test_the_allowance_for_levels_sent_ahead_refuses_bad_settings(bad):
+    with pytest.raises(ValueError, match="must be finite and non-negative"):
+        SessionConfig(**bad)
+    SessionConfig(**{k: 0 for k in bad})  # zero is allowed: nothing sent ahead, or no growth
 
 
 def test_without_the_governor_no_ladder_is_sent(scenes):  # noqa: F811
