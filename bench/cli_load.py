@@ -20,7 +20,10 @@ def loadtest(
     stores: Optional[list[Path]] = typer.Option(None, "--store", help="scene stores the started server serves "
                                                 "(default: the Den Haag store, built if missing)"),
     scene: Optional[str] = typer.Option(None, help="scene to ask for (default: the server's first)"),
-    clients: int = typer.Option(..., help="simulated clients"),
+    clients: int = typer.Option(..., help="simulated clients (per worker process with --clients-per-worker)"),
+    per_worker: bool = typer.Option(False, "--clients-per-worker", help="drive each worker process with --clients "
+                                    "clients (a run of N workers: N × clients), so every run's processes carry the "
+                                    "load one worker is measured at and the scaling ratio compares like with like"),
     duration: float = typer.Option(..., help="seconds to run, the ramp included"),
     tau: float = typer.Option(0.5, help="τ of the started server (seconds between selections)"),
     rate: float = typer.Option(10.0, help="camera poses and frame reports per second per client"),
@@ -67,7 +70,7 @@ def loadtest(
         raise typer.BadParameter("--metrics names the servers behind a --url", param_hint="--metrics")
     try:
         result, runs = run_goals(
-            workers or [1], repeats=repeats, coherent=coherent,
+            workers or [1], repeats=repeats, coherent=coherent, per_worker=per_worker,
             url=url, stores=stores or None, scene=scene, clients=clients, duration=duration, tau=tau, rate=rate,
             target_ms=target_ms, algorithms=algs, ramp=ramp, seed=seed, reference=reference,
             admin_headers={"Authorization": f"Bearer {admin_token}"} if admin_token else None,

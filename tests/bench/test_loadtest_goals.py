@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.loadtest.goals import GOAL_SCALING, judge, run_goals
+from bench.loadtest.goals import GOAL_COHERENT_MS, GOAL_SCALING, coherent_goal, judge, run_goals
 from bench.loadtest.summary import LoadSummary
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -63,11 +63,34 @@ def test_a_median_round_that_missed_the_lines_fails_the_goal_and_says_why():
     assert any("did not hold the lines" in n for n in notes)
 
 
+def test_the_coherent_step_is_judged_on_its_median_round():
+    g = coherent_goal([4.0, 2.9, 2.8])
+    assert g["value"] == 2.9 and g["spread"] == [2.8, 4.0] and g["rounds_met"] == 2 and g["goal_met"]
+    assert not coherent_goal([GOAL_COHERENT_MS + 0.1, 2.0])["goal_met"]  # the lower median of two is the slower
+
+
 def test_worker_counts_and_rounds_are_checked_before_any_run():
     with pytest.raises(ValueError, match="each count once"):
         run_goals([1, 1], repeats=1)
     with pytest.raises(ValueError, match="at least 1"):
         run_goals([1], repeats=0)
+    with pytest.raises(ValueError, match="--url server's processes are its own"):
+        run_goals([1], per_worker=True, url="ws://127.0.0.1:9/ws", clients=4)
+
+
+def test_cli_clients_per_worker_drives_each_process_alike(demo_store):
+    """``--clients-per-worker``: the run of two workers carries twice the clients of the one-worker run, so each
+    process holds the load the other run's does."""
+    out = subprocess.run(
+        [sys.executable, "-m", "walkstream", "loadtest", "--store", str(demo_store), "--clients", "2",
+         "--clients-per-worker", "--duration", "2.5", "--ramp", "0.5", "--reference", "0", "--workers", "1",
+         "--workers", "2", "--no-coherent", "--json"],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    assert summary["clients_per_worker"] is True
+    assert [(r["workers"], r["clients"], r["sessions_opened"]) for r in summary["runs"]] == [(1, 2, 2), (2, 4, 4)]
 
 
 def test_cli_rounds_interleave_and_report_the_spread(demo_store):
