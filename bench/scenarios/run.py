@@ -287,7 +287,10 @@ def drift(ctx: Context) -> dict:
     Pass: settled mean ≤ 1.15 × target — the steady mean sits at the target, so 15 % for a model that has
     followed the load most of the way (the load itself varies as the scheduler shares the cores) — with
     something still drawn (settled triangles > 0). Whether the picture comes back after the load is in the
-    figures (``triangles_after``), not judged.
+    figures (``triangles_after``), not judged. A solver that never leaves a visible object out (hierarchical,
+    predictive) coarsens no further than its coarsest cut; after the run that cut is drawn under the same load
+    (``coarsest_loaded_ms``, as ``below_coarsest`` draws it) and the verdict judges such a solver at that floor
+    when it drew there (``drift_verdict``).
     """
     a = ctx.anchor
     duration = ctx.seconds(16.0, floor=9.0)
@@ -307,6 +310,12 @@ def drift(ctx: Context) -> dict:
 
     with load:  # stops the load however the run ends
         run = ctx.run(keys, duration, trace=False, on_frame=on_frame)
+    cut = METHODS[ctx.method].solver in _CUT_SOLVERS
+    floor_ms = math.nan
+    if cut:  # the cheapest picture such a solver can coarsen to, drawn under the same load
+        with _CpuLoad(load.count) as busy:
+            busy.start()
+            floor_ms = coarsest_frame_ms(ctx.store, ctx.index, a, cut=True, viewport=ctx.viewport, fov_y=ctx.fov_y)
     if math.isnan(started):
         started = load_t0
     if math.isnan(stopped):
@@ -332,6 +341,7 @@ def drift(ctx: Context) -> dict:
         # A cut solver that cannot fit the budget under the load sends its coarsest cut, priced over it.
         "over_budget_settled": rounded(float(np.mean([f.predicted_cost > f.budget * (1 + 1e-9) for f in held]))
                                        if held else math.nan, 3),
+        "cut_solver": cut, "coarsest_loaded_ms": rounded(floor_ms, 1),
         **_run_figures(run),
     }
     ok, text = drift_verdict(fig, ctx.target_ms)

@@ -245,6 +245,19 @@ def test_frame_time_verdicts_hold_their_limits():
     ok, line = drift_verdict(floor, 50.0)
     assert not ok and "90 % of those frames drew a delta priced over its budget" in line
     assert drift_verdict({**floor, "settled": drift["settled"]}, 50.0)[0]
+    # A cut solver at its floor under a load that makes its coarsest cut dearer than the target is held to that
+    # cut's time under the load in the target's place (1.15 × 60 ms); not at its floor, or a flat solver, to the
+    # target's line.
+    cut = {**floor, "cut_solver": True, "coarsest_loaded_ms": 60.0, "settled": {**st(80.0), "mean_ms": 68.5}}
+    ok, line = drift_verdict(cut, 50.0)
+    assert ok and "its coarsest cut drew in 60.0 ms under the load, so the line is 1.15 × that, 69.0 ms" in line
+    assert not drift_verdict({**cut, "settled": {**st(80.0), "mean_ms": 69.5}}, 50.0)[0]
+    assert not drift_verdict({**cut, "over_budget_settled": 0.4}, 50.0)[0]
+    assert not drift_verdict({**cut, "cut_solver": False}, 50.0)[0]
+    assert not drift_verdict({**cut, "coarsest_loaded_ms": math.nan}, 50.0)[0]
+    cheap = {**cut, "coarsest_loaded_ms": 30.0}  # a floor under the target leaves the target's line
+    ok, line = drift_verdict({**cheap, "settled": drift["settled"]}, 50.0)
+    assert ok and "under the load" not in line and not drift_verdict(cheap, 50.0)[0]
     net = {"p95_ms": 55.0, "errors": 0, "late": 1, "reconnects": 0, "bytes": 1e6, "lost_chunks": 3}
     assert network_verdict(net, 50.0)[0]
     assert not network_verdict({**net, "p95_ms": 55.1}, 50.0)[0]
