@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 
 from bench.machine import frame_noise
-from bench.report.results import budget_free, finite, label, method_order, nearly_equal, run_at, target_of
+from bench.report.results import (budget_free, finite, label, method_order, nearly_equal, repeats_at, run_at,
+                                  target_of)
 
 __all__ = [
     "STD_RATIO_LIMIT", "MAX_RATIO_LIMIT", "GOVERNOR_MEAN_LIMIT", "GOVERNOR_P99_LIMIT", "GOVERNOR_OVER_LIMIT",
@@ -279,10 +280,37 @@ def checks(results: dict) -> list[dict]:
         out.append(c)
     out += _governor_checks(gov, opt, (bound or {}).get("methods", {}).get("optimization+gov"), bound, target,
                             float(results.get("warmup_s") or 0.0))
+    flip = next(c for c in out if c["name"] == "governor_flip_ratio")
+    if flip["passed"] is not None:
+        _flip_samples(flip, repeats_at(results, "optimization", target, True),
+                      repeats_at(results, "optimization", target, False))
     points = quality_points(results)
     out.append(_pareto_check("opt_pareto", "optimization", points, target))
     out.append(_pareto_check("pred_pareto", "predictive", points, target))
     return out
+
+
+def _flip_samples(check: dict, governed: list[dict], plain: list[dict]) -> None:
+    """Add to the FLIP check what its one pair of median repeats leaves out: the ratio over every repeat, and in
+    how many of the image samples where Optimization without the governor errs the governed run errs less.
+    Samples are paired by index: the same seed samples every run at the same tour times (``bench.quality``)."""
+    def flips(runs: list[dict]) -> list[np.ndarray]:
+        return [np.asarray((r.get("quality") or {}).get("flip") or [], np.float64) for r in runs]
+
+    g, u = flips(governed), flips(plain)
+    g_all, u_all = (np.concatenate(x) if x else np.zeros(0) for x in (g, u))
+    if not g_all.size or not u_all.size or not u_all.mean() > 0:
+        return
+    lower = errs = 0
+    for a, b in zip(g, u):
+        n = min(a.size, b.size)
+        err = b[:n] > 0
+        errs += int(err.sum())
+        lower += int((a[:n][err] < b[:n][err]).sum())
+    check["all_repeats"] = float(g_all.mean() / u_all.mean())
+    check["samples_lower"], check["samples_erring"] = lower, errs
+    check["line"] += (f"; over every repeat {check['all_repeats']:.3f}, the governed error lower in {lower} of the "
+                      f"{errs} samples where optimization's is not 0")
 
 
 def _limit_check(name: str, value: float | None, limit: float, at_least: bool, what: str, why: str) -> dict:

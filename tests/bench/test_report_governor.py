@@ -49,6 +49,18 @@ def test_governor_checks_pass_a_governor_that_holds_the_target():
     assert c["opt_std_bound_vs_static"]["passed"] is True and "optimization+gov" in c["opt_std_bound_vs_static"]["line"]
 
 
+def test_the_flip_check_says_the_ratio_over_every_repeat_and_the_samples_it_lowers():
+    res = _with_governor(synthetic_results(), scale=0.95)
+    for run in res["runs"]:  # three samples each; the governed run lowers the first two, matches the third
+        if run["method"] == "optimization":
+            run["quality"]["flip"] = [0.02, 0.01, 0.04] if run.get("governor") else [0.04, 0.02, 0.04]
+    c = _by_name(res)["governor_flip_ratio"]
+    assert c["all_repeats"] == pytest.approx(0.07 / 0.10)
+    assert (c["samples_lower"], c["samples_erring"]) == (2, 3)
+    assert "over every repeat 0.700, the governed error lower in 2 of the 3 samples" in c["line"]
+    assert c["value"] == pytest.approx(0.03 / run_at(res, "optimization", 50.0)["summary"]["flip_mean"])
+
+
 def test_governor_checks_fail_where_it_misses_and_say_so():
     c = _by_name(_with_governor(synthetic_results(), scale=0.6, flip=0.049))
     assert c["governor_mean_bound"]["passed"] is False and "misses" in c["governor_mean_bound"]["line"]
