@@ -8,8 +8,8 @@ import math
 from typing import Any, Mapping
 
 __all__ = [
-    "SPIN_LIMIT", "TURN_LIMIT", "DRIFT_LIMIT", "FLOOR_SHARE", "NETWORK_LIMIT", "CUT_SLACK", "spin_verdict", "turn_verdict",
-    "oscillation_verdict", "drift_verdict", "below_coarsest_verdict", "network_verdict",
+    "SPIN_LIMIT", "TURN_LIMIT", "DRIFT_LIMIT", "FLOOR_SHARE", "NETWORK_LIMIT", "CUT_SLACK", "spin_verdict",
+    "turn_verdict", "oscillation_verdict", "drift_verdict", "below_coarsest_verdict", "network_verdict",
 ]
 
 
