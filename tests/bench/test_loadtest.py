@@ -207,13 +207,30 @@ def test_cli_json(demo_store):
     assert "goal scaling (2 workers)" in out.stderr
 
 
+def test_a_replica_cpu_is_read_finer_than_a_clock_tick():
+    """A one-client server spends about a clock tick's CPU a second: its CPU is read to the scheduler's
+    nanoseconds, not rounded down to whole ticks. The child stops halfway between two ticks, where ticks would
+    read 5 ms short of what it spent."""
+    code = ("import sys, time\n"
+            "while time.process_time() % 0.01 < 0.005 or time.process_time() < 0.05: pass\n"
+            "print(time.process_time(), flush=True); sys.stdin.readline()")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        spent = float(proc.stdout.readline())
+        assert spent <= tree_cpu(proc.pid) <= spent + 0.004
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 def test_a_replica_cpu_is_its_processes_together():
     """The CPU of a process tree counts every process below the root, and the children it already reaped."""
     code = ("import subprocess, sys, time\n"
             "burn = 'import time\\nt = time.process_time()\\nwhile time.process_time() - t < 0.6: pass'\n"
             "subprocess.run([sys.executable, '-c', burn])\n"  # reaped: counted in the parent's children time
-            "p = subprocess.Popen([sys.executable, '-c', burn + '\\ntime.sleep(30)'])\n"
-            "time.sleep(3); print('ready', flush=True); time.sleep(30)")
+            "p = subprocess.Popen([sys.executable, '-c', burn + '\\nprint(1, flush=True)\\ntime.sleep(30)'],\n"
+            "                     stdout=subprocess.PIPE)\n"
+            "p.stdout.readline(); print('ready', flush=True); time.sleep(30)")  # the live child has burnt its share
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == "ready"
