@@ -150,8 +150,9 @@ def tree_cpu(pid: int) -> float | None:
 def _runtime(pid: int) -> float:
     """Seconds on a CPU of a process's live threads, from the scheduler's nanosecond clock (0 without it).
 
-    /proc's utime and stime count whole clock ticks (10 ms), as much as a one-client server spends in a second:
-    a short reference read 0 from them. The ticks still bound it below, for threads that have exited."""
+    /proc's utime and stime count whole clock ticks, coarser than what a lightly loaded server spends over a
+    short window (a short reference read 0 from them). The ticks still bound it below, for threads that have
+    exited."""
     total = 0
     try:
         for task in Path(f"/proc/{pid}/task").iterdir():
