@@ -70,6 +70,12 @@ class SessionConfig:
     cost_model : "online" — F&S's coefficients fitted to the frame reports by robust recursive least
         squares, the simplest adequate model chosen (``select.cost_online``); "zach" — the running
         c_vertex average alone (Zach 2002, 4.2), for comparison
+    governed_within : with the client's governor on, the online cost model uses a richer model than the
+        simplest only when the simplest one's held-out error exceeds (1 + this) × the best one's (``within``;
+        0.30 without the governor). The governor corrects each frame's cost from the frames themselves, so a
+        richer model's better frame predictions buy the plan little; what it costs the plan is its extra
+        terms' prices, fitted on frames the governor holds at one load (its steps change vertices while the
+        draws stay), and extrapolated by the solver to plans of other mixes.
     """
 
     tau: float = 0.5
@@ -87,6 +93,7 @@ class SessionConfig:
     clock_wait: float = 3.0
     factors: BenefitFactors | None = None
     cost_model: str = "online"
+    governed_within: float = 1.0
     link_share: float = 0.8
     ahead_share: float = 0.5
     ahead_floor: int = 64 * 1024
@@ -101,5 +108,7 @@ class SessionConfig:
         if not (self.ahead_share >= 0 and self.ahead_floor >= 0 and 0 <= self.ahead_gain < math.inf):
             raise ValueError(f"ahead_share, ahead_floor and ahead_gain must be finite and non-negative, got "
                              f"{self.ahead_share}, {self.ahead_floor}, {self.ahead_gain}")
+        if not (0 <= self.governed_within < math.inf):
+            raise ValueError(f"governed_within must be finite and non-negative, got {self.governed_within}")
         if self.cost_model not in ("online", "zach"):
             raise ValueError(f"cost_model must be 'online' or 'zach', got {self.cost_model!r}")

@@ -249,6 +249,8 @@ class Session:
         # The budget's tail is that of frames the budget is about: a near-empty view's frame far over its
         # prediction (the overhead's noise) says nothing of how a frame at the target strays.
         self.cost.tail_min_time = TAIL_MIN_SHARE * hello.target_frame_time
+        if hello.governor and isinstance(self.cost, OnlineCostModel):
+            self.cost.within = max(self.cost.within, self.config.governed_within)
         table = SceneTable.of(index)
         self.pipeline.start(table, store, hello)
         self.timing.morph = hello.morph

@@ -162,6 +162,29 @@ def test_the_ladder_picks_the_simplest_model_the_machine_needs(machine):
         assert 0.15 < rep["models"]["stages"]["fill_bound"] < 0.5  # ~30 % of the frames are fill-bound
 
 
+def test_a_wider_within_keeps_the_simplest_model_unless_a_richer_one_is_far_better():
+    """``within`` is how much better a richer model must predict before it is used (a governed session asks
+    1.0): a per-draw cost that is a small share of the frame makes "draw" better by about 1.5 × — taken at
+    0.30, not at 1.0 — while the machines that need "draw" or "stages" make the simpler models 2.5–6 × worse,
+    and are found at 1.0 too."""
+    small = dict(MACHINES["vertex"], cd=5e-6)
+    rng = np.random.default_rng(0)
+    f, v, p, d, s = _workload(rng, 400, algorithms=(0,), fill_share=0.0)
+    times = _times(small, f, v, p, d, s) * (1 + rng.normal(0, 0.03, 400))
+    shares = {}
+    for within in (0.30, 1.0):
+        model = OnlineCostModel(within=within)
+        _, chosen = _run(model, (f, v, p, d, s), times)
+        shares[within] = np.mean(np.array(chosen[-200:]) == "vertex")
+        scores = model.scores(model.window)
+        assert 1.3 < scores["vertex"] / min(scores.values()) < 2.0
+    assert shares[0.30] <= 0.4 and shares[1.0] >= 0.9
+    for machine in ("draw", "stages"):
+        frames, times = _frames(machine, 400, seed=1, fill_share=0.3)
+        _, chosen = _run(OnlineCostModel(within=1.0), frames, times)
+        assert np.mean(np.array(chosen[-200:]) == machine) >= 0.9
+
+
 def test_draw_model_recovers_the_machine():
     frames, times = _frames("draw", 400, seed=5)
     model = OnlineCostModel()

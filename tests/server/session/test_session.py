@@ -99,6 +99,25 @@ def test_frame_reports_drive_the_cost_model(scenes):
     assert all(v >= 0 for c in stats["cost_coefficients"].values() for v in np.atleast_1d(c))
 
 
+def test_a_governed_session_asks_more_of_a_richer_cost_model(scenes):
+    """With the governor on, the cost model goes past its simplest rung only when that rung's held-out error is
+    over (1 + ``governed_within``) × the best's; without it, (1 + 0.30) ×. /sessions says which limit holds."""
+    plain, governed = _open(scenes), _open(scenes, governor=True)
+    wide = _open(scenes, config=SessionConfig(governed_within=2.5), governor=True)
+    assert plain.cost.within == pytest.approx(0.30)
+    assert governed.cost.within == pytest.approx(SessionConfig().governed_within) == pytest.approx(1.0)
+    assert wide.cost.within == pytest.approx(2.5)
+    for s in (plain, governed, wide):
+        s.receive(_camera(scenes), now=0.0)
+        _deltas(s.poll(0.0))
+        for i in range(30):
+            s.receive(encode(FrameReport(frame=i, t=0.1 * i, time=0.02 + 1e-3 * (i % 3), triangles=200_000,
+                                         vertices=100_000, draws=5)), 0.1)
+    assert "(1 + 0.3)" in plain.stats["cost_why"] and "(1 + 1)" in governed.stats["cost_why"]
+    with pytest.raises(ValueError, match="governed_within"):
+        SessionConfig(governed_within=float("nan"))
+
+
 def test_a_report_riding_with_a_pose_counts_as_if_it_came_alone(scenes):
     """One message a frame (``Camera.report``) drives the session exactly as the two messages did."""
     start = next(iter(scenes.values())).index.start
