@@ -72,7 +72,7 @@ class SessionConfig:
         c_vertex average alone (Zach 2002, 4.2), for comparison
     governed_within : with the client's governor on, the online cost model uses a richer model than the
         simplest only when the simplest one's held-out error exceeds (1 + this) × the best one's (``within``;
-        0.30 without the governor). The governor corrects each frame's cost from the frames themselves, so a
+        0.30 without the governor, and never less with it: a governed session asks more, not less). The governor corrects each frame's cost from the frames themselves, so a
         richer model's better frame predictions buy the plan little; what it costs the plan is its extra
         terms' prices, fitted on frames the governor holds at one load (its steps change vertices while the
         draws stay), and extrapolated by the solver to plans of other mixes.
