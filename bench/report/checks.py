@@ -10,13 +10,14 @@ from typing import Any
 import numpy as np
 
 from bench.machine import frame_noise
+from bench.report.governed import explain, mean_words, std_words
 from bench.report.results import (budget_free, finite, label, method_order, nearly_equal, repeats_at, run_at,
                                   target_of)
 
 __all__ = [
     "STD_RATIO_LIMIT", "MAX_RATIO_LIMIT", "GOVERNOR_MEAN_LIMIT", "GOVERNOR_P99_LIMIT", "GOVERNOR_OVER_LIMIT",
     "GOVERNOR_FLIP_LIMIT", "quality_points", "pareto", "pareto_miss", "point_label", "verdict_word",
-    "bound_frames", "checks",
+    "bound_frames", "bound_mask", "checks",
 ]
 
 
@@ -176,6 +177,38 @@ def _pareto_check(name: str, method: str, points: list[dict], target: float) -> 
     return _check(name, passed, miss, 0.0, line, budgets=per_budget)
 
 
+def _reference(results: dict, target: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Full detail's frame times at the target (the ``none`` run's frames that draw a selection), or None."""
+    frames = (run_at(results, "none", target) or {}).get("frames") or {}
+    if not frames.get("t"):
+        return None
+    rt = np.asarray(frames["t"], np.float64)
+    rms = np.asarray(frames["time_ms"], np.float64)
+    keep = np.asarray(frames.get("seq") or np.zeros(rt.size), np.int64) >= 0
+    return (rt[keep], rms[keep]) if keep.sum() >= 2 else None
+
+
+def _masks(frames: dict, reference: tuple[np.ndarray, np.ndarray], target: float,
+           warmup: float) -> tuple[np.ndarray, np.ndarray]:
+    """(used, bound) frames of a run: those after the warm-up that draw a selection within full detail's span,
+    and of them those at which full detail takes longer than the target."""
+    rt, rms = reference
+    t = np.asarray(frames["t"], np.float64)
+    seq = np.asarray(frames.get("seq") or np.zeros(t.size), np.int64)
+    use = (t >= warmup) & (seq >= 0) & (t >= rt[0]) & (t <= rt[-1])
+    return use, use & (np.interp(t, rt, rms) > target)
+
+
+def bound_mask(results: dict, run: dict | None, target_ms: float | None = None) -> np.ndarray | None:
+    """Which of ``run``'s frames are bound (``bound_frames``), or None without a ``none`` run or frames."""
+    target = target_of(results, target_ms)
+    reference = _reference(results, target)
+    frames = (run or {}).get("frames") or {}
+    if reference is None or not frames.get("t"):
+        return None
+    return _masks(frames, reference, target, float(results.get("warmup_s") or 0.0))[1]
+
+
 def bound_frames(results: dict, target_ms: float | None = None) -> dict | None:
     """Where the budget binds: each method's frame figures over the frames at which full detail (the ``none``
     run, at the same tour time) takes longer than the target.
@@ -189,30 +222,18 @@ def bound_frames(results: dict, target_ms: float | None = None) -> dict | None:
     with the governor): {frames, frame_mean_ms, frame_std_ms, frame_max_ms}}}, or None without a ``none`` run.
     """
     target = target_of(results, target_ms)
-    ref = run_at(results, "none", target)
-    frames = (ref or {}).get("frames") or {}
-    if not frames.get("t"):
+    reference = _reference(results, target)
+    if reference is None:
         return None
     warmup = float(results.get("warmup_s") or 0.0)
-    rt = np.asarray(frames["t"], np.float64)
-    rms = np.asarray(frames["time_ms"], np.float64)
-    rseq = np.asarray(frames.get("seq") or np.zeros(rt.size), np.int64)
-    keep = rseq >= 0
-    if keep.sum() < 2:
-        return None
-    rt, rms = rt[keep], rms[keep]
     out: dict[str, Any] = {"methods": {}, "share": None}
     for method, governor in [(m, g) for m in method_order(results) for g in (False, True)]:
         run = run_at(results, method, target, governor)
         f = (run or {}).get("frames") or {}
         if not f.get("t"):
             continue
-        t = np.asarray(f["t"], np.float64)
-        ms = np.asarray(f["time_ms"], np.float64)
-        seq = np.asarray(f.get("seq") or np.zeros(t.size), np.int64)
-        use = (t >= warmup) & (seq >= 0) & (t >= rt[0]) & (t <= rt[-1])
-        bound = use & (np.interp(t, rt, rms) > target)
-        v = ms[bound]
+        use, bound = _masks(f, reference, target, warmup)
+        v = np.asarray(f["time_ms"], np.float64)[bound]
         out["methods"][label(method, governor)] = {
             "frames": int(bound.sum()),
             "frame_mean_ms": float(v.mean()) if v.size else None,
@@ -265,6 +286,9 @@ def checks(results: dict) -> list[dict]:
     bound = bound_frames(results, target)
     gov = run_at(results, "optimization", target, governor=True)
     who = "optimization+gov" if gov is not None else "optimization"
+    warmup = float(results.get("warmup_s") or 0.0)
+    mask = bound_mask(results, gov, target) if gov is not None else None
+    why = None if mask is None else explain(gov.get("frames") or {}, mask, target, warmup)
     for ref_name in ("static", "feedback"):
         name = f"opt_std_bound_vs_{ref_name}"
         by = (bound or {}).get("methods", {})
@@ -277,9 +301,18 @@ def checks(results: dict) -> list[dict]:
             c["line"] += (f" — over the frames where full detail exceeds the target"
                           + ("" if share is None else f" ({100 * share:.0f} % of optimization's)"))
             c["share"] = share
+            if why is not None:
+                c["why"] = why
+                if not c["passed"]:
+                    c["line"] += f"; {std_words(why)}"
         out.append(c)
     out += _governor_checks(gov, opt, (bound or {}).get("methods", {}).get("optimization+gov"), bound, target,
-                            float(results.get("warmup_s") or 0.0))
+                            warmup)
+    mean = next(c for c in out if c["name"] == "governor_mean_bound")
+    if why is not None and mean["passed"] is not None:
+        mean["why"] = why
+        if not mean["passed"]:
+            mean["line"] += f"; {mean_words(why, MAX_RATIO_LIMIT)}"
     flip = next(c for c in out if c["name"] == "governor_flip_ratio")
     if flip["passed"] is not None:
         _flip_samples(flip, repeats_at(results, "optimization", target, True),
@@ -329,8 +362,9 @@ def _governor_checks(gov: dict | None, opt: dict | None, gov_bound: dict | None,
     """The governor's checks: mean where full detail exceeds the target, p99, share over, FLIP against
     Optimization without the governor. The mean's line also says how far apart the run's consecutive frames of
     the same work, both at least half the target, fell (``bench.machine.frame_noise``, its ``identical_work``):
-    holding 99 % of frames within 1.1 × target leaves a mean of at most about 1.1 ÷ that scatter's p99,
-    whatever the method."""
+    a governor that predicts each frame from the one before and holds 99 % of frames within 1.1 × target is left a
+    mean of at most about 1.1 ÷ that scatter's p99. Where the check misses, the line goes on with the governed
+    run's own factors (``bench.report.governed``)."""
     names = ("governor_mean_bound", "governor_p99", "governor_over", "governor_flip_ratio")
     if gov is None:
         return [_skip(n, "no optimization run with the governor at the target") for n in names]
@@ -360,8 +394,9 @@ def _governor_checks(gov: dict | None, opt: dict | None, gov_bound: dict | None,
     if mean_check["passed"] is not None and noise["p99"]:
         mean_check["line"] += (f"; consecutive frames of the same triangles (both ≥ ½ target) fell up to "
                                f"{noise['p99']:.3f} × apart (p99 of {noise['pairs']} pairs), so holding 99 % within "
-                               f"{MAX_RATIO_LIMIT:.2f} × leaves a mean of at most about "
-                               f"{MAX_RATIO_LIMIT / noise['p99']:.2f} × on this machine")
+                               f"{MAX_RATIO_LIMIT:.2f} × leaves a governor that predicts each frame from the one "
+                               f"before a mean of at most about {MAX_RATIO_LIMIT / noise['p99']:.2f} × on this "
+                               f"machine")
     return [
         mean_check,
         _limit_check(names[1], None if p99 is None else p99 / target, GOVERNOR_P99_LIMIT, False,

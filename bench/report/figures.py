@@ -56,9 +56,9 @@ def write_traces(results: dict, path: Path, target_ms: float | None = None) -> P
     """F&S Figure 7: frame time over client time, one panel per method at the target, shared axes.
 
     The target and 1.10 × target are horizontal lines, the warm-up is shaded, viewpoints A/B/C are
-    vertical lines. The y axis stops at 4 × target so the budgeted methods stay readable; a panel whose
-    frames go higher says so (its max after the warm-up is in its label). None when no run at the target
-    has frames.
+    vertical lines; a governed panel also draws the governor's aim (the frame time it steered to). The y axis
+    stops at 4 × target so the budgeted methods stay readable; a panel whose frames go higher says so (its max
+    after the warm-up is in its label). None when no run at the target has frames.
     """
     target = target_of(results, target_ms)
     series = []
@@ -68,20 +68,22 @@ def write_traces(results: dict, path: Path, target_ms: float | None = None) -> P
         frames = (run or {}).get("frames") or {}
         t, ms = np.asarray(frames.get("t") or [], float), np.asarray(frames.get("time_ms") or [], float)
         if t.size and t.size == ms.size:
-            series.append((label(method, governor), t, ms, (run.get("summary") or {})))
+            aim = np.asarray(frames.get("governor_aim") or [], float) * target
+            aim = aim if aim.size == t.size and (aim > 0).any() else None
+            series.append((label(method, governor), t, ms, (run.get("summary") or {}), aim))
             c = run.get("calibration") or {}
             if c.get("t") and len(c["t"]) == len(c.get("ms") or []):
                 calibration.append((label(method, governor), np.asarray(c["t"], float), np.asarray(c["ms"], float)))
     if not series:
         return None
     plt = _pyplot()
-    peak = max(float(np.nanmax(ms)) for _, _, ms, _ in series)
+    peak = max(float(np.nanmax(ms)) for _, _, ms, _, _ in series)
     top = max(1.5 * target, min(1.05 * peak, 4.0 * target))
     panels = len(series) + (1 if calibration else 0)
     fig, axes = plt.subplots(panels, 1, sharex=True, figsize=(10, 1.25 + 1.45 * panels), dpi=110, squeeze=False)
     warm = finite(results.get("warmup_s")) or 0.0
     viewpoints = {k: v for k, v in (results.get("viewpoints") or {}).items() if finite(v) is not None}
-    for k, (ax, (method, t, ms, summary)) in enumerate(zip(axes[:, 0], series)):
+    for k, (ax, (method, t, ms, summary, aim)) in enumerate(zip(axes[:, 0], series)):
         if warm > 0:
             ax.axvspan(0, warm, color="0.93", lw=0)
         for name, at in viewpoints.items():
@@ -90,6 +92,9 @@ def write_traces(results: dict, path: Path, target_ms: float | None = None) -> P
                 ax.text(float(at), 1.02, str(name), transform=ax.get_xaxis_transform(), ha="center", va="bottom",
                         fontsize=8)
         ax.plot(t, ms, lw=0.8, color=_colour(method, k))
+        if aim is not None:  # what the governor steered to: where it sits below the target, the frames scattered
+            ax.plot(t, np.where(aim > 0, aim, np.nan), lw=0.9, color="black", alpha=0.75, label="governor's aim")
+            ax.legend(fontsize=6, loc="upper right")
         ax.axhline(target, color="tab:red", ls="--", lw=1.0)
         ax.axhline(MAX_RATIO_LIMIT * target, color="tab:red", ls=":", lw=0.8)
         stats = ", ".join(
