@@ -66,3 +66,43 @@ def test_prefetch_sends_coarser_levels_before_finer_ones():
     more = prefetch(reps, CAM, rep_bytes=REP_BYTES, left=float(coarser + REP_BYTES[4]), rep_error=REP_ERROR, **{
         k: v for k, v in _arrays(resident).items() if k != "rep_vertices"})
     assert set(more.tolist()) >= {2, 8, 14} and len(more) == 4
+
+
+def test_prefetch_extends_each_chain_by_the_first_level_it_lacks():
+    args = {k: v for k, v in _arrays(None).items() if k != "rep_vertices"}
+    reps = np.array([2, 8, 14])
+    resident = np.zeros(N * K, bool)
+    resident[reps] = True
+    resident[[1, 3, 4]] = True  # object 0 holds one level below and two above: its chains go on at 0 and 5
+    resident[[9]] = True  # object 1 holds one above: up goes on at 10, down starts at 7
+    everything = float(REP_BYTES.sum())
+    got = prefetch(reps, CAM, rep_bytes=REP_BYTES, left=everything, rep_error=REP_ERROR,
+                   **{**args, "resident": resident})
+    assert got.tolist() == [0, 5, 7, 10, 13, 15]
+    # A level beyond a gap is not sent (the ladder's chains are contiguous), nor one beyond the ladder's depth.
+    resident = np.zeros(N * K, bool)
+    resident[[0, 1, 2]] = True
+    got = prefetch(np.array([0]), CAM, rep_bytes=REP_BYTES, left=everything, rep_error=REP_ERROR,
+                   **{**args, "resident": resident})
+    assert got.tolist() == [3]
+    resident[:K] = True
+    assert prefetch(np.array([0]), CAM, rep_bytes=REP_BYTES, left=everything, rep_error=REP_ERROR,
+                    **{**args, "resident": resident}).size == 0  # the whole chain is held
+    # With few bytes the coarser level comes first, then the finer level of most benefit per byte.
+    resident = np.zeros(N * K, bool)
+    resident[[2, 3, 8, 9]] = True
+    got = prefetch(np.array([2, 8]), CAM, rep_bytes=REP_BYTES, left=float(REP_BYTES[[1, 7]].sum()), rep_error=REP_ERROR,
+                   **{**args, "resident": resident})
+    assert got.tolist() == [1, 7]
+
+
+def test_prefetch_stops_at_the_ladders_depth():
+    n, k = 1, LADDER_DEPTH + 3
+    rep_object = np.zeros(k, np.int64)
+    faces = 2 * 100 * 2 ** np.arange(k)
+    resident = np.zeros(k, bool)
+    resident[:LADDER_DEPTH + 1] = True  # level 0 selected, the next LADDER_DEPTH held: the chain is full
+    got = prefetch(np.array([0]), CAM, rep_object=rep_object, rep_faces=faces, rep_bytes=12 * faces // 2,
+                   object_lo=LO[:n], object_hi=HI[:n], resident=resident, eligible=np.ones(k, bool), left=1e12,
+                   rep_error=0.5 / 2.0 ** np.arange(k))
+    assert got.size == 0
