@@ -5,15 +5,14 @@ later; the client's frame governor (``client.governor``) corrects it every frame
 along this ladder. For each selected mesh the ladder offers chains of unit steps:
 down through the coarser levels the client holds (as far as they are contiguous,
 up to ``LADDER_DEPTH``), and up through the finer ones it holds or is sent ahead
-(``prefetch``: each delta with bytes left over extends a chain by a level). A
-step of depth d goes from level L ∓ (d − 1) to L ∓ d; it carries its cost
-change (the vertices it adds or removes) and its value, the benefit change per
-vertex (F&S's Value = Benefit ÷ Cost of an increment, the client measuring
-what a vertex costs), so the client can take decrements of lowest value and
-increments of highest value, F&S's incremental step, without knowing the scene.
-Chains deeper than one level matter where the plan meets a machine or a view
-heavier or lighter than the server foresaw: one level down saves a fraction of
-an object's cost, the chain to its coarsest held level most of it.
+(``prefetch``). A step of depth d goes from level L ∓ (d − 1) to L ∓ d; it
+carries its cost change (the vertices it adds or removes) and its value, the
+benefit change per vertex (F&S's Value = Benefit ÷ Cost of an increment, the
+client measuring what a vertex costs), so the client can take decrements of
+lowest value and increments of highest value, F&S's incremental step, without
+knowing the scene. Chains deeper than one level matter where the plan meets a
+machine or a view heavier than the server foresaw: one level down saves a
+fraction of an object's cost, the chain to its coarsest held level most of it.
 
 The benefit of a level is the session's accuracy at the pixels the object
 covers: the screen-space error of the level's stored geometric error where the
@@ -151,40 +150,15 @@ def build_ladder(reps: np.ndarray, cam, *, rep_object: np.ndarray, rep_faces: np
                   value[order].astype(np.float64), base)
 
 
-def _frontier(reps: np.ndarray, sign: int, *, rep_object: np.ndarray, resident: np.ndarray, eligible: np.ndarray,
-              depth: int = LADDER_DEPTH) -> tuple[np.ndarray, np.ndarray]:
-    """(rows of ``reps``, the level each reaches): along each chain that way, the first level not held within
-    ``depth`` levels, every level before it held (of the same object, eligible): the one that extends the chain
-    the ladder offers by a step."""
-    m = resident.size
-    ok = eligible[reps].copy()
-    obj = rep_object[reps]
-    rows, to = [], []
-    for d in range(1, depth + 1):
-        at = reps + sign * d
-        atc = np.clip(at, 0, max(m - 1, 0))
-        ok &= (at >= 0) & (at < m) & (rep_object[atc] == obj) & eligible[atc]
-        missing = np.nonzero(ok & ~resident[atc])[0]
-        rows.append(missing)
-        to.append(at[missing])
-        ok &= resident[atc]
-        if not ok.any():
-            break
-    return np.concatenate(rows), np.concatenate(to)
-
-
 def prefetch(reps: np.ndarray, cam, *, rep_object: np.ndarray, rep_faces: np.ndarray, rep_bytes: np.ndarray,
              object_lo: np.ndarray, object_hi: np.ndarray, resident: np.ndarray, eligible: np.ndarray,
              left: float, rep_error: np.ndarray | None = None) -> np.ndarray:
-    """Levels to send with the bytes a delta leaves over, so the governor has steps to take.
+    """Neighbouring levels to send with the bytes a delta leaves over, so the governor has steps to take.
 
-    Each selected mesh's chain is extended by a level each way: the first level it lacks within
-    ``LADDER_DEPTH`` of the selected one, the levels between held (so over a few deltas that leave bytes over,
-    the chains grow to the ladder's depth, and a governor that has taken every step up finds more). First the
-    coarser ones, most frame cost saved (faces, against the level before in the chain) per byte first: a step
-    down is what holds the frame when the plan is heavier than the machine. Then, with what is left, the finer
-    ones, most benefit gained per byte first (``rep_error``: as ``build_ladder``). Sorted ids, their bytes
-    within ``left``.
+    First the next coarser level of each selected mesh that lacks it, most frame cost saved (faces) per byte
+    first: a step down is what holds the frame when the plan is heavier than the machine. Then, with what
+    is left, the next finer level, most benefit per byte first (``rep_error``: as ``build_ladder``). Sorted
+    ids, their bytes within ``left``.
     """
     reps = np.asarray(reps, np.int64)
     m = resident.size
@@ -192,19 +166,22 @@ def prefetch(reps: np.ndarray, cam, *, rep_object: np.ndarray, rep_faces: np.nda
         return np.zeros(0, np.int64)
     picked, order_key = [], []
     for sign in (-1, 1):
-        rows, t = _frontier(reps, sign, rep_object=rep_object, resident=resident, eligible=eligible)
-        if not rows.size:
+        to = reps + sign
+        toc = np.clip(to, 0, m - 1)
+        ok = (to >= 0) & (to < m) & eligible[reps] & eligible[toc] & (rep_object[toc] == rep_object[reps])
+        ok &= ~resident[toc]
+        if not ok.any():
             continue
-        before = t - sign  # the level the step starts from: the selected one, or the last held beyond it
+        r, t = reps[ok], to[ok]
         nbytes = np.maximum(rep_bytes[t], 1).astype(np.float64)
         if sign < 0:
-            per_byte = (rep_faces[before] - rep_faces[t]).astype(np.float64) / nbytes
+            per_byte = (rep_faces[r] - rep_faces[t]).astype(np.float64) / nbytes
         else:
-            obj = rep_object[reps[rows]]
+            obj = rep_object[r]
             lo, hi = object_lo[obj], object_hi[obj]
             size = screen_size(lo, hi, cam.matrix(), cam.width, cam.height)
             extent = np.linalg.norm(hi.astype(np.float64) - lo, axis=1)
-            gain = _worth(t, size, extent, rep_faces, rep_error) - _worth(before, size, extent, rep_faces, rep_error)
+            gain = _worth(t, size, extent, rep_faces, rep_error) - _worth(r, size, extent, rep_faces, rep_error)
             per_byte = np.abs(gain) / nbytes
         order = np.argsort(-per_byte, kind="stable")
         picked.append(t[order])

@@ -96,7 +96,7 @@ class SessionConfig:
     governed_within: float = 1.0
     link_share: float = 0.8
     ahead_share: float = 0.5
-    ahead_floor: int = 256 * 1024
+    ahead_floor: int = 64 * 1024
     ahead_gain: float = 3.0
     budget_quantile: float = 0.95
     observe_hz: float = 20.0
