@@ -116,10 +116,12 @@ def frame_noise(t: np.ndarray, time_s: np.ndarray, work: np.ndarray, warmup: flo
     least ``least`` s) whose work (vertices or triangles drawn) agrees within ``within``, as quantiles (None
     without such pairs). No cost model predicts it, so a governor holding a tail has to leave room for it. A
     frame of a few milliseconds scatters far more, relatively, than one near the target: ``least`` keeps the
-    frames the budget is about."""
+    frames the budget is about. ``frame_sd``: one frame's relative scatter (the log ratios' std ÷ √2)."""
     t, y, v = (np.asarray(a, np.float64) for a in (t, time_s, work))
     pair = ((t[1:] >= warmup) & (v[:-1] > 0) & (y[:-1] > 0) & (np.minimum(y[1:], y[:-1]) >= least)
             & (np.abs(v[1:] / np.maximum(v[:-1], 1.0) - 1) <= within))
     r = y[1:][pair] / y[:-1][pair]
     q = (lambda k: round(float(np.percentile(r, k)), 3) if r.size else None)  # noqa: E731
-    return {"pairs": int(r.size), "p50": q(50), "p95": q(95), "p99": q(99)}
+    # Two frames of the same work differ by the scatter of both: one frame's is 1/√2 of their log ratio's.
+    sd = float(np.std(np.log(r)) / np.sqrt(2.0)) if r.size >= 2 else None
+    return {"pairs": int(r.size), "p50": q(50), "p95": q(95), "p99": q(99), "frame_sd": sd}

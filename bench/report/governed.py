@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from bench.machine import frame_noise
 from client.governor import NEAR
 
 __all__ = ["explain", "mean_words", "std_words"]
@@ -95,12 +96,9 @@ def explain(frames: dict, bound: np.ndarray, target_ms: float, warmup: float = 0
         out["free_draws"], out["held_draws"] = float(np.median(draws[free])), float(np.median(draws[bh]))
         out["free_bytes_s"], out["held_bytes_s"] = float(np.median(second[free])), float(np.median(second[bh]))
     if tri is not None:
-        pair = (after[1:] & (np.minimum(ms[1:], ms[:-1]) >= target / 2) & (tri[:-1] > 0)
-                & (np.abs(tri[1:] / np.maximum(tri[:-1], 1.0) - 1.0) <= _SAME_WORK))
-        if pair.sum() >= 10:
-            # Two frames of the same work differ by the scatter of both: one frame's is 1/√2 of their log ratio's.
-            log_ratio = np.log(ms[1:][pair] / ms[:-1][pair])
-            out["machine_ms"] = float(np.std(log_ratio) / np.sqrt(2.0) * ms[b].mean())
+        noise = frame_noise(t, ms / 1e3, tri, warmup, within=_SAME_WORK, least=target / 2e3)
+        if noise["pairs"] >= 10:
+            out["machine_ms"] = float(noise["frame_sd"] * ms[b].mean())
     return out
 
 

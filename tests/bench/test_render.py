@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from bench.machine import frame_noise
 from bench.render import delta_apply, replay
@@ -44,6 +45,7 @@ def test_frame_noise_pairs_only_consecutive_frames_of_the_same_work():
     # pairs from t = 1 s on with equal vertices: 1.2/1.0, 1.0/1.2, 2.0/2.0, 2.2/2.0, 1.0/1.0 (the changes are not)
     assert noise["pairs"] == 5 and noise["p50"] == 1.0
     assert noise["p99"] == round(float(np.percentile([1.2, 1 / 1.2, 1.0, 1.1, 1.0], 99)), 3)
+    assert noise["frame_sd"] == pytest.approx(np.std(np.log([1.2, 1 / 1.2, 1.0, 1.1, 1.0])) / np.sqrt(2))
     assert frame_noise(t, time_s, np.arange(10) * 100.0 + 100)["pairs"] == 0
     # Only pairs whose both frames take at least ``least``: here those of 2.0-2.2 s.
     slow = frame_noise(t, time_s, vertices, warmup=1.0, least=1.5)
