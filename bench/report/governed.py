@@ -24,9 +24,6 @@ from client.governor import NEAR
 
 __all__ = ["explain", "mean_words", "std_words"]
 
-#: Consecutive frames drawing triangles within this share of each other count as identical work.
-_SAME_WORK = 0.01
-
 
 def _array(frames: dict, name: str, n: int) -> np.ndarray | None:
     v = frames.get(name)
@@ -71,6 +68,7 @@ def explain(frames: dict, bound: np.ndarray, target_ms: float, warmup: float = 0
     after = t >= warmup
     scored = after & (pred >= NEAR * target) & (ms > 0)
     ratio = np.where(pred > 0, ms / np.where(pred > 0, pred, 1.0), np.nan)
+    predicted = b & (pred > 0)
     out = {
         "frames": int(b.sum()),
         "mean": float(ms[b].mean() / target),
@@ -78,14 +76,14 @@ def explain(frames: dict, bound: np.ndarray, target_ms: float, warmup: float = 0
         "aim_p10": float(np.percentile(aim[b], 10)),
         "aim_p90": float(np.percentile(aim[b], 90)),
         "landing": float(np.mean(pred[bh] / aim_ms[bh])) if bh.any() else None,
-        "measured_vs_predicted": float(np.nanmean(ratio[b & (pred > 0)])) if (b & (pred > 0)).any() else None,
+        "measured_vs_predicted": float(np.mean(ratio[predicted])) if predicted.any() else None,
         "ratio_p99": float(np.percentile(ratio[scored], 99)) if scored.sum() >= 10 else None,
         "free": float(free.sum() / b.sum()),
         "free_mean": float(ms[free].mean() / target) if free.any() else None,
         "std_ms": float(ms[b].std()),
         "std_steady_ms": float(steady[b].std()),
         "std_held_ms": float(steady[bh].std()) if bh.any() else None,
-        "miss_ms": float((ms - pred)[b & (pred > 0)].std()) if (b & (pred > 0)).any() else None,
+        "miss_ms": float((ms - pred)[predicted].std()) if predicted.any() else None,
         "machine_ms": None,
     }
     draws, got = _array(frames, "reps", n), _array(frames, "bytes", n)
@@ -96,7 +94,7 @@ def explain(frames: dict, bound: np.ndarray, target_ms: float, warmup: float = 0
         out["free_draws"], out["held_draws"] = float(np.median(draws[free])), float(np.median(draws[bh]))
         out["free_bytes_s"], out["held_bytes_s"] = float(np.median(second[free])), float(np.median(second[bh]))
     if tri is not None:
-        noise = frame_noise(t, ms / 1e3, tri, warmup, within=_SAME_WORK, least=target / 2e3)
+        noise = frame_noise(t, ms / 1e3, tri, warmup, least=target / 2e3)
         if noise["pairs"] >= 10:
             out["machine_ms"] = float(noise["frame_sd"] * ms[b].mean())
     return out
