@@ -137,8 +137,29 @@ class Schedule:
         fixed = LevelRamps(phase.key, np.where(jump, old.level[pos_c], phase.level_from), level_to,
                        np.where(jump, now, phase.t0), t1)
         if now < gen.switch:
-            return _Generation(gen.start, gen.switch, fixed, gen.after), True
+            return _Generation(gen.start, gen.switch, fixed, self._carry(fixed, gen.after, gen.switch)), True
         return _Generation(gen.start, gen.switch, gen.before, fixed), True
+
+    def _carry(self, before: LevelRamps, after: LevelRamps, switch: float) -> LevelRamps:
+        """``after`` with each object whose catch-up ramp in ``before`` is still under way at ``switch`` ramped
+        on from where that leaves it.
+
+        A catch-up ramp takes at least ``min_ramp``, so one begun just before the switch runs past it, while the
+        after phase starts from the level the server planned for the switch: cut there, the object would pop.
+        It goes on to its planned level by the later of the two ramps' ends, at the catch-up's pace or slower.
+        (The server's own ramps before a switch end by it, and a switch it plans without a morph stays one.)
+        """
+        if not before.key.size or not after.key.size:
+            return after
+        b_level, a_level = before.at(switch), after.at(switch)
+        pos = np.minimum(np.searchsorted(before.key, after.key), before.key.size - 1)
+        off = ((before.key[pos] == after.key) & (before.t1[pos] > switch)
+               & (np.abs(b_level[pos] - a_level) > 1e-9))
+        if not off.any():
+            return after
+        t1 = np.maximum(after.t1[off], before.t1[pos][off])
+        return after.override(after.key[off], b_level[pos][off], after.level_to[off],
+                              np.full(int(off.sum()), switch), t1)
 
     def advance(self, t: float) -> None:
         """Forget generations that no longer govern any time from t on."""

@@ -333,7 +333,7 @@ def test_real_run_results_have_the_schema_and_hold_the_timing_free_criteria(demo
         assert f["method"] == "predictive"
     # Oscillation: geomorphing kept every level continuous, and the figures are the run's.
     lv = osc["figures"]["levels"]
-    assert lv["jumps"] == 0 and lv["pairs"] > 0 and 0 <= lv["max_step"]
+    assert lv["jumps"] == 0 and lv["pairs"] > 0 and 0 <= lv["max_step"], osc["line"]
     assert osc["figures"]["frame"]["frames"] <= osc["figures"]["frames"]
     # Below the coarsest level: the hierarchical solver keeps every visible object (no flat scene splits).
     fb = below["figures"]

@@ -157,6 +157,25 @@ def test_a_late_delta_ramps_from_what_is_drawn_instead_of_jumping():
     assert p.level(0, 1.0) == pytest.approx(0.0)
 
 
+def test_a_delta_late_into_the_last_moment_before_its_switch_does_not_pop_at_the_switch():
+    # The catch-up ramp takes at least min_ramp (0.1 s), so one begun 0.03 s before the switch runs past it;
+    # the after phase must carry it on rather than start from the level the server planned for the switch.
+    p = Pipeline()
+    p.select({0: 4, 1: 1}, arrival=-0.5)
+    p.select({0: 4, 1: 1}, arrival=-0.4)  # switch 0.5
+    tr = p.server.schedule(np.array([0, K]), np.array([1.0, 3.0]), 0.5, 1.0)  # 0 down 4 → 1, 1 up 1 → 3
+    p.client.apply(0.5, 1.0, np.array([0, K]), np.array([1.0, 3.0]),
+                   (tr.key, tr.level_from, tr.level_to, tr.t0, tr.t1), now=0.97)
+    assert p.client.late == 1
+    ts = np.arange(0.96, 1.6, 0.005)
+    for o, last in ((0, 1.0), (1, 3.0)):
+        lv = np.array([p.level(o, t) for t in ts])
+        assert np.abs(np.diff(lv)).max() <= 3 / p.client.min_ramp * 0.005 + 1e-9  # never faster than the catch-up
+        assert lv[-1] == pytest.approx(last)  # and still where the server planned
+    assert p.level(0, 0.97) == pytest.approx(4.0) and p.level(0, 0.97 + p.client.min_ramp) == pytest.approx(1.0)
+    assert p.level(1, 1.0) == pytest.approx(1.0) and p.level(1, 1.5) == pytest.approx(3.0)  # its up-morph as planned
+
+
 def test_a_reset_delta_is_drawn_from_its_arrival_even_if_its_switch_is_ahead_of_the_clock():
     # The server's switch is its estimate of the client's clock; before the clock sync settles it can run ahead.
     s = Schedule()
@@ -236,6 +255,41 @@ def _forest_and_solutions(draw):
     black = np.array(draw(st.lists(st.integers(0, m - 1), unique=True, max_size=m)), np.int64)
     new = np.array(draw(st.lists(st.integers(0, m - 1), unique=True, max_size=m)), np.int64)
     return parent, black, new
+
+
+
+@settings(max_examples=150, deadline=None)
+@given(solutions(), st.lists(st.floats(0.0, 0.99), min_size=9, max_size=9))
+def test_late_deltas_never_make_a_level_jump(case, late):
+    """Deltas arriving anywhere in their window, or a little past their switch, ramp from what is drawn: no
+    level moves faster than the steepest ramp (a catch-up of K − 1 levels over min_ramp)."""
+    sols, _ = case
+    p = Pipeline()
+    p.select(sols[0], arrival=0.0)
+    dt = 0.002
+    bound = (K - 1) / p.client.min_ramp * dt + 1e-9
+    prev: dict[int, float] = {}
+    t = arrival = 0.0
+
+    def draw_until(end: float) -> None:
+        nonlocal t, prev
+        while t < end:
+            d = p.client.at(t)
+            now = dict(zip(d.key.tolist(), d.level.tolist()))
+            for k in now.keys() & prev.keys():
+                assert abs(now[k] - prev[k]) <= bound, (t, k, prev[k], now[k])
+            prev, t = now, t + dt
+
+    for s, f in zip(sols[1:], late):
+        switch, start = p.switch + TAU, p.switch
+        arrival = max(arrival, start + f * 1.2 * TAU)  # up to 0.1 τ past the switch
+        draw_until(arrival)
+        key = np.array([o * K for o in s], np.int64)
+        level = np.array(list(s.values()), np.float64)
+        tr = p.server.schedule(key, level, start, switch)
+        p.client.apply(start, switch, key, level, (tr.key, tr.level_from, tr.level_to, tr.t0, tr.t1), now=t)
+        p.switch = switch
+    draw_until(p.switch + 2 * TAU)
 
 
 @settings(max_examples=150, deadline=None)
