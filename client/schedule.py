@@ -15,7 +15,8 @@ first), so the executor needs no object table. Everything is arrays: one
 
 A delta that arrives after its ``start`` (late) would make levels jump; the
 executor then starts its ramps from the level drawn at arrival instead, so
-nothing pops, and counts it in ``late``.
+nothing pops, and counts it in ``late``; a catch-up still under way at the
+switch carries on into the new selection rather than being cut there.
 """
 
 from __future__ import annotations
