@@ -257,7 +257,6 @@ def _forest_and_solutions(draw):
     return parent, black, new
 
 
-
 @settings(max_examples=150, deadline=None)
 @given(solutions(), st.lists(st.floats(0.0, 0.99), min_size=9, max_size=9))
 def test_late_deltas_never_make_a_level_jump(case, late):
